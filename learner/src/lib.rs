@@ -1,0 +1,21 @@
+//! The mapless learner: off-policy actor–critic updates (DDPG, TD3, SAC; SPEC §2) on libtorch
+//! through tch, on CPU or CUDA.
+//!
+//! So far this crate holds the pieces every algorithm needs:
+//! - [`Device`]: `cpu` / `cuda` / `cuda:N`, checked against what libtorch can see;
+//! - [`TorchThreads`]: libtorch's CPU thread pools, set explicitly (default 1 each, because
+//!   the learner shares cores with actors and libtorch's threads spin);
+//! - [`Mlp`]: the paper's two-hidden-layer ReLU network body with stable parameter names.
+//!
+//! Building needs libtorch 2.13.0: run `scripts/setup-torch.sh` once; `.cargo/config.toml`
+//! points torch-sys at it and `build.rs` bakes its path into test binaries as an rpath.
+
+mod device;
+mod error;
+pub mod nets;
+mod threads;
+
+pub use device::Device;
+pub use error::LearnerError;
+pub use nets::{Mlp, MlpBuilder};
+pub use threads::{DEFAULT_TORCH_THREADS, TorchThreads};

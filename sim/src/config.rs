@@ -1,0 +1,247 @@
+//! Every number the simulator uses, with its symbol and source.
+//!
+//! Sources: **[paper]** Sivashangaran & Eskandarian 2023 (equation numbers as there);
+//! **[inferred]** the paper is silent, the value follows SPEC §1 (the MathWorks template the
+//! paper's set-up follows, AutoVRL, F1TENTH, or what the paper's figures imply).
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Result, SimError};
+
+/// XTENTH-CAR kinematics and actuation (paper §IV-C, eqs. 13–16).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct VehicleConfig {
+    /// L, wheelbase [paper: 0.32 m].
+    pub wheelbase_m: f64,
+    /// l_r, centre of mass to rear axle [inferred: L/2]; l_f = L − l_r.
+    pub lr_m: f64,
+    /// Footprint length (bumper to bumper) [inferred: 0.55 m].
+    pub length_m: f64,
+    /// Footprint width [inferred: 0.30 m].
+    pub width_m: f64,
+    /// δ_max, steering limit [inferred: 0.40 rad; F1TENTH 0.419, AutoVRL 0.36].
+    pub max_steer_rad: f64,
+    /// v_max: a₁ ∈ [−1, 1] maps to v = v_max (a₁ + 1) / 2 [inferred: 0.5 m/s].
+    pub v_max_mps: f64,
+    /// ω_max: a₂ ∈ [−1, 1] maps to ω = ω_max a₂ [inferred: 0.6 rad/s].
+    pub omega_max_radps: f64,
+    /// Control period (one environment step) [inferred: 0.1 s; 1000-step episodes = 100 s].
+    pub dt_s: f64,
+    /// Longest distance travelled between two collision checks; a step is cut into sub-steps
+    /// so that no obstacle thinner than this can be jumped [inferred: 0.05 m].
+    pub max_substep_m: f64,
+}
+
+impl Default for VehicleConfig {
+    fn default() -> Self {
+        VehicleConfig {
+            wheelbase_m: 0.32,
+            lr_m: 0.16,
+            length_m: 0.55,
+            width_m: 0.30,
+            max_steer_rad: 0.40,
+            v_max_mps: 0.5,
+            omega_max_radps: 0.6,
+            dt_s: 0.1,
+            max_substep_m: 0.05,
+        }
+    }
+}
+
+/// Which ray caster answers a scan (see `scene`): both give the same ranges.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum RaycastMethod {
+    /// Per-beam grid walk below 32 beams, fan sweep from 32 up.
+    #[default]
+    Auto,
+    PerBeam,
+    Fan,
+}
+
+/// Planar range sensor (LiDAR or RGB-D ranges), paper §III-A.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct SensorConfig {
+    /// Number of beams [inferred, template: 7].
+    pub beams: usize,
+    /// Field of view, beams spread evenly over [−fov/2, +fov/2] [inferred, template: 3π/4].
+    /// With fov ≥ 2π the last beam does not repeat the first.
+    pub fov_rad: f64,
+    /// r_max; a miss reads r_max [inferred, template: 12 m].
+    pub max_range_m: f64,
+    /// σ of additive Gaussian range noise; readings are clipped to [0, r_max] [inferred: 0.1 m].
+    pub noise_std_m: f64,
+    /// Mounting height: obstacles not taller than this are invisible (tree canopies are not
+    /// obstacles at all) [inferred, AutoVRL: 0.15 m].
+    pub height_m: f64,
+    /// Ray caster; does not change results.
+    pub method: RaycastMethod,
+}
+
+impl Default for SensorConfig {
+    fn default() -> Self {
+        SensorConfig { beams: 7, fov_rad: 3.0 * std::f64::consts::FRAC_PI_4, max_range_m: 12.0, noise_std_m: 0.1, height_m: 0.15, method: RaycastMethod::Auto }
+    }
+}
+
+impl SensorConfig {
+    /// Beam angles relative to the heading, ascending.
+    pub fn beam_angles_rad(&self) -> Vec<f64> {
+        let n = self.beams;
+        if n == 1 {
+            return vec![0.0];
+        }
+        let full_circle = self.fov_rad >= std::f64::consts::TAU - 1e-9;
+        let step = if full_circle { self.fov_rad / n as f64 } else { self.fov_rad / (n - 1) as f64 };
+        (0..n).map(|k| -self.fov_rad / 2.0 + k as f64 * step).collect()
+    }
+}
+
+/// A reward band: `value` is added when `min_m < r < max_m` (r = minimum range).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RewardBand {
+    pub min_m: f64,
+    pub max_m: f64,
+    pub value: f64,
+}
+
+/// R = w_r r² + w_v v² − w_ω ω² + Σ bands, r the smallest range reading (metres), v and ω the
+/// commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct RewardConfig {
+    /// Weight of r² [paper eq. 1: 0.0075].
+    pub range_weight: f64,
+    /// Weight of v² [paper eq. 1: 1.5].
+    pub speed_weight: f64,
+    /// Penalty weight of ω² [paper eq. 1: 0.6].
+    pub turn_penalty: f64,
+    /// Distance bands [paper eq. 2: +2.0 for 2.0 < r < 2.5, −50 for r < 1.0; none in eq. 1].
+    pub bands: Vec<RewardBand>,
+}
+
+impl Default for RewardConfig {
+    fn default() -> Self {
+        Self::exploration()
+    }
+}
+
+impl RewardConfig {
+    /// Paper eq. (1): exploration.
+    pub fn exploration() -> Self {
+        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new() }
+    }
+    /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
+    pub fn search_and_rescue() -> Self {
+        RewardConfig {
+            bands: vec![RewardBand { min_m: 2.0, max_m: 2.5, value: 2.0 }, RewardBand { min_m: f64::NEG_INFINITY, max_m: 1.0, value: -50.0 }],
+            ..Self::exploration()
+        }
+    }
+    /// A preset by name: `exploration` (eq. 1) or `search_and_rescue` (eq. 2).
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "exploration" | "eq1" => Ok(Self::exploration()),
+            "search_and_rescue" | "sar" | "eq2" => Ok(Self::search_and_rescue()),
+            _ => Err(SimError::InvalidConfig(format!("unknown reward preset `{name}` (exploration, search_and_rescue)"))),
+        }
+    }
+    /// Reward for minimum range `r_m` and commanded (v, ω).
+    #[inline]
+    pub fn reward(&self, r_m: f64, v_mps: f64, omega_radps: f64) -> f64 {
+        let mut rew = self.range_weight * r_m * r_m + self.speed_weight * v_mps * v_mps - self.turn_penalty * omega_radps * omega_radps;
+        for b in &self.bands {
+            if b.min_m < r_m && r_m < b.max_m {
+                rew += b.value;
+            }
+        }
+        rew
+    }
+}
+
+/// Episode rules (paper §IV-D).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct EpisodeConfig {
+    /// Truncation limit [paper: 1000 in env1 and outdoor, 2000 in env2].
+    pub max_steps: u32,
+    /// Minimum distance from the footprint to any obstacle at the start [inferred: 0.5 m].
+    pub start_clearance_m: f64,
+    /// Rejection-sampling attempts before a map is declared to have no valid start.
+    pub start_attempts: usize,
+}
+
+impl Default for EpisodeConfig {
+    fn default() -> Self {
+        EpisodeConfig { max_steps: 1000, start_clearance_m: 0.5, start_attempts: 100_000 }
+    }
+}
+
+/// EQS / EES scoring grid (paper §IV-B; our reading is documented in `explore`).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ExplorationConfig {
+    /// Area of one scoring cell [paper: 2 m²]; cells are squares of side √area.
+    pub cell_area_m2: f64,
+    /// Width of the rings around the start [paper: radius 10n m].
+    pub ring_width_m: f64,
+}
+
+impl Default for ExplorationConfig {
+    fn default() -> Self {
+        ExplorationConfig { cell_area_m2: 2.0, ring_width_m: 10.0 }
+    }
+}
+
+/// Everything one environment needs besides its map.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct EnvConfig {
+    pub vehicle: VehicleConfig,
+    pub sensor: SensorConfig,
+    pub reward: RewardConfig,
+    pub episode: EpisodeConfig,
+    pub exploration: ExplorationConfig,
+}
+
+impl EnvConfig {
+    /// Length of the observation vector: [ranges_t, ranges_{t−1}, v_{t−1}, ω_{t−1}, R_{t−1}].
+    pub fn obs_dim(&self) -> usize {
+        2 * self.sensor.beams + 3
+    }
+
+    /// Checks every field's domain.
+    pub fn validate(&self) -> Result<()> {
+        let v = &self.vehicle;
+        let s = &self.sensor;
+        let checks: [(bool, &str); 14] = [
+            (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
+            (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
+            (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
+            (v.max_steer_rad > 0.0 && v.max_steer_rad < std::f64::consts::FRAC_PI_2, "vehicle.max_steer_rad must be in (0, π/2)"),
+            (v.v_max_mps > 0.0 && v.omega_max_radps >= 0.0, "vehicle.v_max_mps must be > 0 and omega_max_radps ≥ 0"),
+            (v.dt_s > 0.0 && v.max_substep_m > 0.0, "vehicle.dt_s and max_substep_m must be > 0"),
+            (s.beams >= 1 && s.beams <= 8192, "sensor.beams must be in 1..=8192"),
+            (s.fov_rad > 0.0 && s.fov_rad <= std::f64::consts::TAU + 1e-9, "sensor.fov_rad must be in (0, 2π]"),
+            (s.max_range_m > 0.0, "sensor.max_range_m must be > 0"),
+            (s.noise_std_m >= 0.0, "sensor.noise_std_m must be ≥ 0"),
+            (self.episode.max_steps >= 1, "episode.max_steps must be ≥ 1"),
+            (self.episode.start_clearance_m >= 0.0, "episode.start_clearance_m must be ≥ 0"),
+            (self.exploration.cell_area_m2 > 0.0, "exploration.cell_area_m2 must be > 0"),
+            (self.exploration.ring_width_m > 0.0, "exploration.ring_width_m must be > 0"),
+        ];
+        let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m]
+            .iter()
+            .all(|x| x.is_finite());
+        if !all_finite {
+            return Err(SimError::InvalidConfig("every vehicle and sensor value must be finite".into()));
+        }
+        match checks.iter().find(|(ok, _)| !ok) {
+            Some((_, msg)) => Err(SimError::InvalidConfig((*msg).into())),
+            None => Ok(()),
+        }
+    }
+}

@@ -1,0 +1,365 @@
+//! Episodes: one vehicle ([`Env`]) and many at once ([`VecEnv`], what actors use).
+//!
+//! Observation (paper §III-A), with n beams, 2n + 3 floats:
+//!
+//! ```text
+//!   [ ranges_t (n) | ranges_{t−1} (n) | v_{t−1} | ω_{t−1} | R_{t−1} ]
+//! ```
+//!
+//! ranges normalised to [−1, 1] as 2r/r_max − 1; v (m/s) and ω (rad/s) are the last commanded
+//! action and R the last reward, in physical units. At a reset both scans are the first scan
+//! and the last action and reward are 0.
+//!
+//! An episode ends either by **collision** (`terminal`: the value of what follows is 0, no
+//! bootstrapping) or by reaching `max_steps` (`truncated`: the task goes on, bootstrapping
+//! continues). A collision on the last step is terminal; the two flags are never both set.
+
+use std::sync::Arc;
+
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64Mcg;
+
+use crate::config::EnvConfig;
+use crate::error::{Result, SimError};
+use crate::explore::ExplorationTracker;
+use crate::map::Map;
+use crate::scene::{Footprint, Scene};
+use crate::sensor::RangeSensor;
+use crate::vehicle::Pose;
+
+/// Grid cell size of the scene index [inferred: 1 m; a 12 m beam crosses at most ~24 cells].
+const SCENE_CELL_M: f64 = 1.0;
+
+/// A map with a configuration, ready to host vehicles. Immutable and shared (`Arc`).
+#[derive(Debug)]
+pub struct World {
+    pub map: Map,
+    pub cfg: EnvConfig,
+    /// Everything the car can hit.
+    pub collide: Scene,
+    /// Everything the sensor can see (obstacles taller than the sensor).
+    pub sense: Scene,
+    pub footprint: Footprint,
+}
+
+impl World {
+    pub fn new(map: Map, cfg: EnvConfig) -> Result<Arc<World>> {
+        cfg.validate()?;
+        let collide = map.scene(0.0, SCENE_CELL_M);
+        let sense = map.scene(cfg.sensor.height_m, SCENE_CELL_M);
+        let footprint = Footprint { half_length_m: cfg.vehicle.length_m / 2.0, half_width_m: cfg.vehicle.width_m / 2.0 };
+        Ok(Arc::new(World { map, cfg, collide, sense, footprint }))
+    }
+
+    pub fn obs_dim(&self) -> usize {
+        self.cfg.obs_dim()
+    }
+
+    /// Can the car stand here with `clearance_m` to spare? Conservative: the centre must be at
+    /// least clearance + the footprint's circumradius from every surface, whatever the heading.
+    pub fn is_valid_start(&self, x: f64, y: f64, clearance_m: f64) -> bool {
+        let circumradius = self.footprint.half_length_m.hypot(self.footprint.half_width_m);
+        self.map.is_free(x, y) && self.collide.distance_to_nearest(x, y) >= clearance_m + circumradius
+    }
+}
+
+/// Result of one step of one vehicle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepOutcome {
+    pub reward: f32,
+    /// Collision: no bootstrapping.
+    pub terminal: bool,
+    /// Step limit reached: bootstrapping continues.
+    pub truncated: bool,
+}
+
+impl StepOutcome {
+    pub fn done(&self) -> bool {
+        self.terminal || self.truncated
+    }
+}
+
+/// What an episode achieved, reported when it ends.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct EpisodeSummary {
+    pub episode_id: u64,
+    pub return_: f64,
+    pub steps: u32,
+    pub terminal: bool,
+    pub truncated: bool,
+    pub eqs: u64,
+    pub ees: f64,
+    pub distance_m: f64,
+    pub shaded_time_s: f64,
+}
+
+/// One vehicle in a world.
+#[derive(Clone, Debug)]
+pub struct Env {
+    world: Arc<World>,
+    sensor: RangeSensor,
+    rng: Pcg64Mcg,
+    pose: Pose,
+    ranges: Vec<f32>,
+    prev_ranges: Vec<f32>,
+    prev_v: f32,
+    prev_omega: f32,
+    prev_reward: f32,
+    steps: u32,
+    return_: f64,
+    episode_id: u64,
+    episodes_started: u64,
+    tracker: ExplorationTracker,
+    trajectory: Option<Vec<[f64; 2]>>,
+}
+
+/// SplitMix64: decorrelates seeds of neighbouring vehicles.
+fn splitmix64(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+impl Env {
+    /// A vehicle with its own random stream. Call [`Env::reset`] before stepping.
+    pub fn new(world: Arc<World>, seed: u64) -> Self {
+        let n = world.cfg.sensor.beams;
+        let tracker = ExplorationTracker::new(world.map.bounds, &world.cfg.exploration);
+        Env {
+            sensor: RangeSensor::new(&world.cfg.sensor),
+            rng: Pcg64Mcg::seed_from_u64(splitmix64(seed)),
+            world,
+            pose: Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 },
+            ranges: vec![0.0; n],
+            prev_ranges: vec![0.0; n],
+            prev_v: 0.0,
+            prev_omega: 0.0,
+            prev_reward: 0.0,
+            steps: 0,
+            return_: 0.0,
+            episode_id: 0,
+            episodes_started: 0,
+            tracker,
+            trajectory: None,
+        }
+    }
+
+    pub fn world(&self) -> &Arc<World> {
+        &self.world
+    }
+    pub fn pose(&self) -> Pose {
+        self.pose
+    }
+    pub fn steps(&self) -> u32 {
+        self.steps
+    }
+    pub fn episode_id(&self) -> u64 {
+        self.episode_id
+    }
+    /// Latest measured ranges in metres.
+    pub fn ranges_m(&self) -> &[f32] {
+        &self.ranges
+    }
+    pub fn tracker(&self) -> &ExplorationTracker {
+        &self.tracker
+    }
+    /// Keep every pose of the current episode (for pictures). Off by default.
+    pub fn record_trajectory(&mut self, on: bool) {
+        self.trajectory = on.then(Vec::new);
+    }
+    pub fn trajectory(&self) -> Option<&[[f64; 2]]> {
+        self.trajectory.as_deref()
+    }
+
+    /// Starts an episode at a uniformly random collision-free pose and writes its observation.
+    pub fn reset(&mut self, obs: &mut [f32]) -> Result<()> {
+        let w = Arc::clone(&self.world);
+        let b = w.map.bounds;
+        let ep = &w.cfg.episode;
+        for _ in 0..ep.start_attempts {
+            let x = self.rng.random_range(b.min_x..b.max_x);
+            let y = self.rng.random_range(b.min_y..b.max_y);
+            if w.is_valid_start(x, y, ep.start_clearance_m) {
+                let heading = self.rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                self.reset_to(Pose { x_m: x, y_m: y, heading_rad: heading }, obs);
+                return Ok(());
+            }
+        }
+        Err(SimError::NoFreeStart { map: w.map.name.clone(), clearance_m: ep.start_clearance_m, attempts: ep.start_attempts })
+    }
+
+    /// Starts an episode at a given pose (evaluation, tests). The pose is not checked.
+    pub fn reset_to(&mut self, pose: Pose, obs: &mut [f32]) {
+        self.pose = pose;
+        self.steps = 0;
+        self.return_ = 0.0;
+        self.episodes_started += 1;
+        self.episode_id = self.episodes_started;
+        self.prev_v = 0.0;
+        self.prev_omega = 0.0;
+        self.prev_reward = 0.0;
+        let w = Arc::clone(&self.world);
+        self.sensor.scan(&w.sense, &pose, &mut self.rng, &mut self.ranges);
+        self.prev_ranges.copy_from_slice(&self.ranges);
+        self.tracker.reset(pose.x_m, pose.y_m);
+        if let Some(t) = &mut self.trajectory {
+            t.clear();
+            t.push([pose.x_m, pose.y_m]);
+        }
+        self.write_obs(obs);
+    }
+
+    /// Applies action a ∈ [−1, 1]² (clipped) for one control period and writes the next
+    /// observation. Errors (and changes nothing) if the action is not finite.
+    pub fn step(&mut self, action: [f32; 2], next_obs: &mut [f32]) -> Result<StepOutcome> {
+        if !(action[0].is_finite() && action[1].is_finite()) {
+            return Err(SimError::InvalidAction { vehicle: 0, problem: format!("not finite: {action:?}") });
+        }
+        let w = Arc::clone(&self.world);
+        let vc = &w.cfg.vehicle;
+        let cmd = vc.command(action[0], action[1]);
+        let n = vc.substeps(cmd.v_mps);
+        let h = vc.dt_s / n as f64;
+        let mut collided = false;
+        for _ in 0..n {
+            self.pose = vc.advance(self.pose, cmd.v_mps, cmd.steer_rad, h);
+            if w.collide.footprint_collides(self.pose.x_m, self.pose.y_m, self.pose.heading_rad, &w.footprint) {
+                collided = true;
+                break;
+            }
+        }
+        std::mem::swap(&mut self.ranges, &mut self.prev_ranges);
+        self.sensor.scan(&w.sense, &self.pose, &mut self.rng, &mut self.ranges);
+        let r_min = self.ranges.iter().copied().fold(f32::INFINITY, f32::min) as f64;
+        let reward = w.cfg.reward.reward(r_min, cmd.v_mps, cmd.omega_radps);
+        let shade = if w.map.in_shade(self.pose.x_m, self.pose.y_m) { vc.dt_s } else { 0.0 };
+        self.tracker.visit(self.pose.x_m, self.pose.y_m, shade);
+        if let Some(t) = &mut self.trajectory {
+            t.push([self.pose.x_m, self.pose.y_m]);
+        }
+        self.steps += 1;
+        self.return_ += reward;
+        self.prev_v = cmd.v_mps as f32;
+        self.prev_omega = cmd.omega_radps as f32;
+        self.prev_reward = reward as f32;
+        self.write_obs(next_obs);
+        let terminal = collided;
+        let truncated = !terminal && self.steps >= w.cfg.episode.max_steps;
+        Ok(StepOutcome { reward: reward as f32, terminal, truncated })
+    }
+
+    /// Statistics of the episode so far.
+    pub fn summary(&self, outcome: Option<StepOutcome>) -> EpisodeSummary {
+        EpisodeSummary {
+            episode_id: self.episode_id,
+            return_: self.return_,
+            steps: self.steps,
+            terminal: outcome.is_some_and(|o| o.terminal),
+            truncated: outcome.is_some_and(|o| o.truncated),
+            eqs: self.tracker.eqs(),
+            ees: self.tracker.ees(),
+            distance_m: self.tracker.distance_m(),
+            shaded_time_s: self.tracker.shaded_time_s(),
+        }
+    }
+
+    fn write_obs(&self, obs: &mut [f32]) {
+        let n = self.ranges.len();
+        debug_assert_eq!(obs.len(), 2 * n + 3);
+        let scale = 2.0 / self.world.cfg.sensor.max_range_m as f32;
+        for k in 0..n {
+            obs[k] = self.ranges[k] * scale - 1.0;
+            obs[n + k] = self.prev_ranges[k] * scale - 1.0;
+        }
+        obs[2 * n] = self.prev_v;
+        obs[2 * n + 1] = self.prev_omega;
+        obs[2 * n + 2] = self.prev_reward;
+    }
+}
+
+/// Outputs of one [`VecEnv::step`], columnar (row i = vehicle i).
+#[derive(Clone, Debug, Default)]
+pub struct VecStep {
+    /// Observation after the step, before any reset (what the transition stores).
+    pub next_obs: Vec<f32>,
+    pub reward: Vec<f32>,
+    pub terminal: Vec<bool>,
+    pub truncated: Vec<bool>,
+    /// Episodes that ended in this step: (vehicle index, summary). Those vehicles have been
+    /// reset; [`VecEnv::obs`] holds their new first observation.
+    pub finished: Vec<(usize, EpisodeSummary)>,
+}
+
+/// Many vehicles in one world, stepped with one call; episodes reset automatically.
+pub struct VecEnv {
+    envs: Vec<Env>,
+    obs: Vec<f32>,
+    obs_dim: usize,
+}
+
+impl VecEnv {
+    /// `n` vehicles; vehicle i draws from stream (seed, i). All are reset.
+    pub fn new(world: Arc<World>, n: usize, seed: u64) -> Result<Self> {
+        let d = world.obs_dim();
+        let mut envs: Vec<Env> = (0..n).map(|i| Env::new(Arc::clone(&world), splitmix64(seed) ^ (i as u64).wrapping_mul(0xA24B_AED4_963E_E407))).collect();
+        let mut obs = vec![0.0; n * d];
+        for (e, o) in envs.iter_mut().zip(obs.chunks_exact_mut(d)) {
+            e.reset(o)?;
+        }
+        Ok(VecEnv { envs, obs, obs_dim: d })
+    }
+
+    pub fn len(&self) -> usize {
+        self.envs.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.envs.is_empty()
+    }
+    pub fn obs_dim(&self) -> usize {
+        self.obs_dim
+    }
+    /// Current observations (n × obs_dim), what the policy acts on.
+    pub fn obs(&self) -> &[f32] {
+        &self.obs
+    }
+    pub fn envs(&self) -> &[Env] {
+        &self.envs
+    }
+    pub fn envs_mut(&mut self) -> &mut [Env] {
+        &mut self.envs
+    }
+
+    /// Steps every vehicle with `actions` (n × 2, row-major). Validates the whole batch first:
+    /// on error nothing moves.
+    pub fn step(&mut self, actions: &[f32], out: &mut VecStep) -> Result<()> {
+        let n = self.envs.len();
+        if actions.len() != 2 * n {
+            return Err(SimError::InvalidAction { vehicle: 0, problem: format!("expected {} action values for {n} vehicles, got {}", 2 * n, actions.len()) });
+        }
+        if let Some(i) = actions.iter().position(|a| !a.is_finite()) {
+            return Err(SimError::InvalidAction { vehicle: i / 2, problem: format!("component {} is {}", i % 2, actions[i]) });
+        }
+        let d = self.obs_dim;
+        out.next_obs.resize(n * d, 0.0);
+        out.reward.resize(n, 0.0);
+        out.terminal.resize(n, false);
+        out.truncated.resize(n, false);
+        out.finished.clear();
+        for (i, env) in self.envs.iter_mut().enumerate() {
+            let next = &mut out.next_obs[i * d..(i + 1) * d];
+            let o = env.step([actions[2 * i], actions[2 * i + 1]], next)?;
+            out.reward[i] = o.reward;
+            out.terminal[i] = o.terminal;
+            out.truncated[i] = o.truncated;
+            let cur = &mut self.obs[i * d..(i + 1) * d];
+            if o.done() {
+                out.finished.push((i, env.summary(Some(o))));
+                env.reset(cur)?;
+            } else {
+                cur.copy_from_slice(next);
+            }
+        }
+        Ok(())
+    }
+}

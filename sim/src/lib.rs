@@ -1,0 +1,33 @@
+//! `mapless-sim` — the pure, synchronous, deterministic simulator behind mapless.
+//!
+//! ```text
+//!   Map (built-in / vector YAML / ROS map_server) ──► World (Scene index + EnvConfig)
+//!        │                                               │  shared by Arc
+//!        ▼                                               ▼
+//!   render (PNG pictures)              Env (one vehicle) / VecEnv (many, one call)
+//!                                         bicycle model · range sensor · reward · EQS/EES
+//! ```
+//!
+//! No async, no global state: every random draw comes from a vehicle's own seeded stream, so a
+//! seed fixes an episode exactly. Units are in names (`range_m`, `heading_rad`). Every number
+//! is a config field documented with its source (`config`).
+
+pub mod config;
+pub mod env;
+pub mod error;
+pub mod explore;
+mod font;
+mod image;
+pub mod map;
+pub mod pendulum;
+pub mod render;
+pub mod scene;
+pub mod sensor;
+pub mod vehicle;
+
+pub use config::{EnvConfig, EpisodeConfig, ExplorationConfig, RaycastMethod, RewardConfig, SensorConfig, VehicleConfig};
+pub use env::{Env, EpisodeSummary, StepOutcome, VecEnv, VecStep, World};
+pub use error::{Result, SimError};
+pub use explore::ExplorationTracker;
+pub use map::Map;
+pub use vehicle::Pose;

@@ -1,0 +1,163 @@
+//! Map files: the ROS map_server loader on a small image with known obstacles, vector maps,
+//! and a clear error (naming the file and the problem) for every kind of corrupt input.
+
+use std::path::{Path, PathBuf};
+
+use mapless_sim::Map;
+
+fn dir(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join("map_files").join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// 10 × 8 px at 0.5 m, origin (−1, −2): white (free) everywhere except a black 2 × 2 block at
+/// image rows 2–3, columns 3–4 (world x ∈ [0.5, 1.5], y ∈ [0, 1]) and a grey (unknown) band in
+/// columns 8–9 (x ∈ [3, 4]).
+fn small_image() -> Vec<u8> {
+    let (w, h) = (10, 8);
+    let mut px = vec![254u8; w * h];
+    for r in 2..4 {
+        for c in 3..5 {
+            px[r * w + c] = 0;
+        }
+    }
+    for r in 0..h {
+        for c in 8..10 {
+            px[r * w + c] = 128;
+        }
+    }
+    px
+}
+
+const ROS_YAML: &str = "image: IMAGE\nresolution: 0.5\norigin: [-1.0, -2.0, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n";
+
+fn write_pgm(path: &Path, px: &[u8]) {
+    let mut bytes = b"P5\n# made by a test\n10 8\n255\n".to_vec();
+    bytes.extend_from_slice(px);
+    std::fs::write(path, bytes).unwrap();
+}
+
+fn check_small_map(map: &Map) {
+    assert_eq!((map.bounds.min_x, map.bounds.min_y, map.bounds.max_x, map.bounds.max_y), (-1.0, -2.0, 4.0, 2.0));
+    assert!(map.is_free(-0.75, 0.5));
+    assert!(!map.is_free(1.0, 0.5), "black block is occupied");
+    assert!(!map.is_free(3.5, 0.0), "grey band is unknown, so blocked");
+    let scene = map.scene(0.0, 1.0);
+    // From (−0.75, 0.5): +x meets the block's west face at x = 0.5 → 1.25 m; −x meets the grid
+    // border at x = −1 → 0.25 m.
+    assert!((scene.cast_ray(-0.75, 0.5, 1.0, 0.0, 12.0) - 1.25).abs() < 1e-5);
+    assert!((scene.cast_ray(-0.75, 0.5, -1.0, 0.0, 12.0) - 0.25).abs() < 1e-5);
+    // From (2.25, −1.75) along +x: the unknown band starts at x = 3 → 0.75 m.
+    assert!((scene.cast_ray(2.25, -1.75, 1.0, 0.0, 12.0) - 0.75).abs() < 1e-5);
+    // Straight up from (1.0, −1.75): the block's south face at y = 0 → 1.75 m.
+    assert!((scene.cast_ray(1.0, -1.75, 0.0, 1.0, 12.0) - 1.75).abs() < 1e-5);
+}
+
+#[test]
+fn ros_pgm_map_loads_with_known_obstacles() {
+    let d = dir("pgm");
+    write_pgm(&d.join("small.pgm"), &small_image());
+    std::fs::write(d.join("small.yaml"), ROS_YAML.replace("IMAGE", "small.pgm")).unwrap();
+    let map = Map::load(&d.join("small.yaml")).unwrap();
+    assert_eq!(map.name, "small");
+    check_small_map(&map);
+}
+
+#[test]
+fn ros_png_map_loads_the_same() {
+    let d = dir("png");
+    let f = std::fs::File::create(d.join("small.png")).unwrap();
+    let mut enc = png::Encoder::new(f, 10, 8);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.write_header().unwrap().write_image_data(&small_image()).unwrap();
+    std::fs::write(d.join("small.yaml"), ROS_YAML.replace("IMAGE", "small.png")).unwrap();
+    check_small_map(&Map::load(&d.join("small.yaml")).unwrap());
+}
+
+#[test]
+fn ascii_pgm_and_negate_are_honoured() {
+    let d = dir("p2");
+    // Negated: 255 means occupied. 3 × 2: one occupied pixel top-left.
+    std::fs::write(d.join("n.pgm"), "P2\n3 2\n255\n255 0 0\n0 0 0\n").unwrap();
+    std::fs::write(d.join("n.yaml"), "image: n.pgm\nresolution: 1.0\norigin: [0, 0, 0]\nnegate: 1\noccupied_thresh: 0.65\nfree_thresh: 0.196\n").unwrap();
+    let map = Map::load(&d.join("n.yaml")).unwrap();
+    assert!(!map.is_free(0.5, 1.5));
+    assert!(map.is_free(1.5, 1.5) && map.is_free(0.5, 0.5));
+}
+
+#[test]
+fn user_vector_map_loads_and_is_usable() {
+    let d = dir("vector");
+    let p = d.join("room.yaml");
+    std::fs::write(&p, "format: mapless-vector-map/v1\nname: room\nbounds: {min: [0, 0], max: [6, 4]}\nboundary_walls: true\nobstacles:\n  - polygon: {points: [[2, 1], [3, 1], [3, 2]]}\n  - box: {center: [5, 3], size: [0.5, 0.5], height_m: 0.1}\nshaded:\n  - polygon: {points: [[0, 0], [1, 0], [1, 1], [0, 1]]}\n").unwrap();
+    let map = Map::resolve(p.to_str().unwrap()).unwrap();
+    assert!(!map.is_free(2.9, 1.2));
+    assert!(map.in_shade(0.5, 0.5));
+    // The 0.1 m box is invisible to a sensor at 0.15 m but blocks the car.
+    assert_eq!(map.scene(0.15, 1.0).segment_count(), 4 + 3);
+    assert_eq!(map.scene(0.0, 1.0).segment_count(), 4 + 3 + 4);
+}
+
+/// Writes `files` into a fresh folder, loads `main`, and returns the error text.
+fn load_err(case: &str, files: &[(&str, &[u8])], main: &str) -> String {
+    let d = dir(case);
+    for (name, bytes) in files {
+        std::fs::write(d.join(name), bytes).unwrap();
+    }
+    match Map::load(&d.join(main)) {
+        Ok(_) => panic!("{case}: corrupt map loaded"),
+        Err(e) => e.to_string(),
+    }
+}
+
+fn assert_names(err: &str, file: &str, problem: &str) {
+    assert!(err.contains(file), "error does not name the file {file}: {err}");
+    assert!(err.to_lowercase().contains(&problem.to_lowercase()), "error does not say `{problem}`: {err}");
+}
+
+#[test]
+fn corrupt_vector_maps_get_errors_naming_file_and_problem() {
+    let head = "format: mapless-vector-map/v1\nname: bad\nbounds: {min: [0, 0], max: [10, 10]}\n";
+    let cases: &[(&str, String, &str)] = &[
+        ("syntax", "format: [unclosed\n".into(), "not valid YAML"),
+        ("format", head.replace("v1", "v9"), "unsupported format"),
+        ("radius", format!("{head}obstacles:\n  - circle: {{center: [1, 1], radius: -2}}\n"), "obstacle 0 (circle)"),
+        ("outside", format!("{head}obstacles:\n  - box: {{center: [11, 5], size: [2, 2]}}\n"), "outside the map bounds"),
+        ("field", format!("{head}obstacles:\n  - circle: {{centre: [1, 1], radius: 1}}\n"), "unknown field `centre`"),
+        ("kind", format!("{head}obstacles:\n  - triangle: {{}}\n"), "unknown variant `triangle`"),
+        ("bounds", "format: mapless-vector-map/v1\nname: b\nbounds: {min: [5, 0], max: [1, 10]}\n".into(), "min < max"),
+        ("polygon", format!("{head}obstacles:\n  - polygon: {{points: [[1, 1], [2, 2]]}}\n"), "at least 3"),
+        ("neither", "hello: world\n".into(), "neither a vector map"),
+        ("empty", String::new(), "neither"),
+    ];
+    for (case, text, problem) in cases {
+        let err = load_err(case, &[("m.yaml", text.as_bytes())], "m.yaml");
+        assert_names(&err, "m.yaml", problem);
+    }
+}
+
+#[test]
+fn corrupt_ros_maps_get_errors_naming_file_and_problem() {
+    let good_yaml = ROS_YAML.replace("IMAGE", "i.pgm");
+    let mut pgm = b"P5\n10 8\n255\n".to_vec();
+    pgm.extend_from_slice(&small_image());
+    let cases: Vec<(&str, Vec<(&str, Vec<u8>)>, &str, &str)> = vec![
+        ("missing-image", vec![("m.yaml", good_yaml.clone().into_bytes())], "i.pgm", "cannot read image"),
+        ("truncated", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", pgm[..40].to_vec())], "i.pgm", "truncated"),
+        ("header", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", b"P5\nten 8\n255\n".to_vec())], "i.pgm", "corrupt PGM header"),
+        ("not-image", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", b"GIF89a....".to_vec())], "i.pgm", "not a PGM"),
+        ("bad-png", vec![("m.yaml", good_yaml.replace("i.pgm", "i.png").into_bytes()), ("i.png", b"\x89PNG\r\n\x1a\nxxxxxxxxxxxx".to_vec())], "i.png", "corrupt PNG"),
+        ("resolution", vec![("m.yaml", good_yaml.replace("0.5", "-0.5").into_bytes()), ("i.pgm", pgm.clone())], "m.yaml", "resolution"),
+        ("thresholds", vec![("m.yaml", good_yaml.replace("free_thresh: 0.196", "free_thresh: 0.9").into_bytes()), ("i.pgm", pgm.clone())], "m.yaml", "free_thresh < occupied_thresh"),
+        ("yaw", vec![("m.yaml", good_yaml.replace("0.0]", "0.3]").into_bytes()), ("i.pgm", pgm.clone())], "m.yaml", "yaw"),
+        ("no-resolution", vec![("m.yaml", b"image: i.pgm\norigin: [0, 0, 0]\noccupied_thresh: 0.65\nfree_thresh: 0.2\n".to_vec()), ("i.pgm", pgm.clone())], "m.yaml", "resolution"),
+        ("all-blocked", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", { let mut p = b"P5\n10 8\n255\n".to_vec(); p.extend(vec![0u8; 80]); p })], "m.yaml", "no free cell"),
+    ];
+    for (case, files, file, problem) in cases {
+        let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (*n, b.as_slice())).collect();
+        let err = load_err(case, &refs, "m.yaml");
+        assert_names(&err, file, problem);
+    }
+}

@@ -1,0 +1,252 @@
+//! Rewards, episode ends, starts, determinism and the vectorised API, against hand-worked values.
+
+use std::sync::Arc;
+
+use mapless_sim::{Env, EnvConfig, Map, Pose, RewardConfig, VecEnv, VecStep, World};
+
+fn world(map: &str, cfg: EnvConfig) -> Arc<World> {
+    World::new(Map::builtin(map).unwrap(), cfg).unwrap()
+}
+
+fn noiseless() -> EnvConfig {
+    let mut c = EnvConfig::default();
+    c.sensor.noise_std_m = 0.0;
+    c
+}
+
+#[test]
+fn exploration_reward_is_equation_1() {
+    let r = RewardConfig::exploration();
+    // R = 0.0075 r² + 1.5 v² − 0.6 ω²: r = 4, v = 0.5, ω = 0.3 → 0.12 + 0.375 − 0.054 = 0.441.
+    assert!((r.reward(4.0, 0.5, 0.3) - 0.441).abs() < 1e-12);
+    // Bands of eq. (2) do not apply to eq. (1).
+    assert!((r.reward(0.5, 0.0, 0.0) - 0.001875).abs() < 1e-12);
+}
+
+#[test]
+fn search_and_rescue_reward_is_equation_2() {
+    let r = RewardConfig::search_and_rescue();
+    // 2.0 < r = 2.2 < 2.5: eq. 1 (0.0363 + 0.375 − 0) + 2.0 = 2.4113.
+    assert!((r.reward(2.2, 0.5, 0.0) - 2.4113).abs() < 1e-12);
+    // r = 0.8 < 1.0: 0.0048 + 0.375 − 50 = −49.6202.
+    assert!((r.reward(0.8, 0.5, 0.0) - (-49.6202)).abs() < 1e-12);
+    // Band edges are strict: r = 2.0 and r = 1.0 get no bonus or penalty.
+    assert!((r.reward(2.0, 0.0, 0.0) - 0.03).abs() < 1e-12);
+    assert!((r.reward(1.0, 0.0, 0.0) - 0.0075).abs() < 1e-12);
+    assert!(RewardConfig::preset("nope").is_err());
+}
+
+#[test]
+fn observation_holds_both_scans_last_action_and_reward() {
+    let w = world("env1", noiseless());
+    let mut env = Env::new(Arc::clone(&w), 1);
+    let d = w.obs_dim();
+    assert_eq!(d, 17);
+    let mut obs = vec![0.0; d];
+    // Centre of env1 facing +x: the middle beam (0 rad) sees the wall at 12.5 m → beyond 12 m → max.
+    env.reset_to(Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    assert_eq!(&obs[0..7], &obs[7..14], "at reset both scans are the first scan");
+    assert_eq!(&obs[14..17], &[0.0, 0.0, 0.0]);
+    assert_eq!(obs[3], 1.0); // 12 m (a miss) normalises to +1
+    // Outer beams at ±3π/8 hit y = ±12.5 at 12.5 / sin(3π/8) = 13.53 m: also misses.
+    let mut next = vec![0.0; d];
+    // Full speed straight: v = 0.5, ω = 0.
+    let o = env.step([1.0, 0.0], &mut next).unwrap();
+    assert_eq!(&next[7..14], &obs[0..7], "previous scan moves to the second block");
+    assert_eq!(next[14], 0.5);
+    assert_eq!(next[15], 0.0);
+    assert_eq!(next[16], o.reward);
+    // Every beam reads 12 m (all walls ≥ 12.45 m away): R = 0.0075·144 + 1.5·0.25 = 1.455.
+    assert!((o.reward - 1.455).abs() < 1e-6, "{}", o.reward);
+    assert!(!o.terminal && !o.truncated);
+}
+
+#[test]
+fn ranges_to_a_known_wall_match_the_geometry() {
+    let w = world("env1", noiseless());
+    let mut env = Env::new(Arc::clone(&w), 1);
+    let mut obs = vec![0.0; w.obs_dim()];
+    // 4.5 m from the east wall (x = 12.5), facing it.
+    env.reset_to(Pose { x_m: 8.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    let r = env.ranges_m();
+    assert!((r[3] - 4.5).abs() < 1e-4, "{r:?}");
+    // Beam k at angle θ_k = −3π/8 + kπ/8: distance to x = 12.5 is 4.5 / cos θ_k while ≤ 12.
+    for (k, &rk) in r.iter().enumerate() {
+        let theta = -3.0 * std::f64::consts::PI / 8.0 + k as f64 * std::f64::consts::PI / 8.0;
+        let expect = (4.5 / theta.cos()).min(12.0);
+        assert!((rk as f64 - expect).abs() < 1e-4, "beam {k}: {rk} vs {expect}");
+    }
+    // Normalised: 2·4.5/12 − 1 = −0.25.
+    assert!((obs[3] + 0.25).abs() < 1e-5);
+}
+
+#[test]
+fn driving_into_a_wall_is_terminal_not_truncated() {
+    let w = world("env1", noiseless());
+    let mut env = Env::new(Arc::clone(&w), 3);
+    let mut obs = vec![0.0; w.obs_dim()];
+    // Nose 0.5 m from the east wall: centre at 12.5 − 0.275 − 0.5.
+    env.reset_to(Pose { x_m: 11.725, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    let mut steps = 0;
+    let outcome = loop {
+        let o = env.step([1.0, 0.0], &mut obs).unwrap();
+        steps += 1;
+        if o.done() {
+            break o;
+        }
+    };
+    // 0.05 m per step: the nose reaches the wall during step 10.
+    assert_eq!(steps, 10);
+    assert!(outcome.terminal && !outcome.truncated);
+}
+
+#[test]
+fn reaching_max_steps_is_truncated_not_terminal() {
+    let mut cfg = noiseless();
+    cfg.episode.max_steps = 25;
+    let w = world("env1", cfg);
+    let mut env = Env::new(Arc::clone(&w), 4);
+    let mut obs = vec![0.0; w.obs_dim()];
+    env.reset_to(Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    for k in 1..=25 {
+        // Standing still (v = 0) can never collide.
+        let o = env.step([-1.0, 0.0], &mut obs).unwrap();
+        assert_eq!(o.truncated, k == 25);
+        assert!(!o.terminal);
+    }
+}
+
+#[test]
+fn collision_on_the_last_step_is_terminal_only() {
+    let mut cfg = noiseless();
+    cfg.episode.max_steps = 10;
+    let w = world("env1", cfg);
+    let mut env = Env::new(Arc::clone(&w), 5);
+    let mut obs = vec![0.0; w.obs_dim()];
+    env.reset_to(Pose { x_m: 11.725, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    let mut last = None;
+    for _ in 0..10 {
+        last = Some(env.step([1.0, 0.0], &mut obs).unwrap());
+    }
+    let o = last.unwrap();
+    assert!(o.terminal && !o.truncated);
+}
+
+#[test]
+fn random_starts_are_never_in_collision_and_keep_clearance() {
+    for map in ["env1", "env2", "env3", "outdoor20"] {
+        let w = world(map, EnvConfig::default());
+        let mut env = Env::new(Arc::clone(&w), 11);
+        let mut obs = vec![0.0; w.obs_dim()];
+        for _ in 0..300 {
+            env.reset(&mut obs).unwrap();
+            let p = env.pose();
+            assert!(w.map.is_free(p.x_m, p.y_m), "{map}: start {p:?} not in free space");
+            assert!(!w.collide.footprint_collides(p.x_m, p.y_m, p.heading_rad, &w.footprint), "{map}: {p:?}");
+            // Footprint clearance ≥ 0.5 m: every point of the footprint's outline (where the
+            // distance to outside obstacles is smallest) is ≥ 0.5 m from every surface.
+            let (hl, hw) = (w.footprint.half_length_m, w.footprint.half_width_m);
+            let (s, c) = p.heading_rad.sin_cos();
+            for k in 0..200 {
+                let f = k as f64 / 50.0;
+                let (u, v) = match k / 50 {
+                    0 => (-hl + 2.0 * hl * f, -hw),
+                    1 => (hl, -hw + 2.0 * hw * (f - 1.0)),
+                    2 => (hl - 2.0 * hl * (f - 2.0), hw),
+                    _ => (-hl, hw - 2.0 * hw * (f - 3.0)),
+                };
+                let (x, y) = (p.x_m + c * u - s * v, p.y_m + s * u + c * v);
+                let d = w.collide.distance_to_nearest(x, y);
+                assert!(d >= 0.5 - 1e-5, "{map}: start {p:?}: outline point ({x:.3}, {y:.3}) only {d:.3} m from an obstacle");
+            }
+        }
+    }
+}
+
+#[test]
+fn same_seed_same_episode_different_seed_different_episode() {
+    let run = |seed: u64| {
+        let w = world("env2", EnvConfig::default());
+        let mut v = VecEnv::new(w, 4, seed).unwrap();
+        let mut out = VecStep::default();
+        let mut trace = Vec::new();
+        for t in 0..300 {
+            let a: Vec<f32> = (0..8).map(|k| ((t * 7 + k * 3) % 11) as f32 / 5.0 - 1.0).collect();
+            v.step(&a, &mut out).unwrap();
+            trace.extend_from_slice(&out.next_obs);
+            trace.extend_from_slice(&out.reward);
+        }
+        trace
+    };
+    let a = run(42);
+    assert_eq!(a, run(42));
+    assert_ne!(a, run(43));
+}
+
+#[test]
+fn vec_env_resets_finished_vehicles_and_reports_their_episode() {
+    let mut cfg = EnvConfig::default();
+    cfg.episode.max_steps = 5;
+    let w = world("env1", cfg);
+    let mut v = VecEnv::new(Arc::clone(&w), 3, 9).unwrap();
+    let mut out = VecStep::default();
+    let still = vec![-1.0f32, 0.0, -1.0, 0.0, -1.0, 0.0];
+    for _ in 0..4 {
+        v.step(&still, &mut out).unwrap();
+        assert!(out.finished.is_empty());
+    }
+    let before: Vec<f32> = out.next_obs.clone();
+    v.step(&still, &mut out).unwrap();
+    assert_eq!(out.finished.len(), 3);
+    for (i, s) in &out.finished {
+        assert_eq!(s.steps, 5);
+        assert!(s.truncated && !s.terminal);
+        assert_eq!(v.envs()[*i].steps(), 0, "vehicle {i} was reset");
+    }
+    // After a reset the current observation is a fresh one (last action/reward zero), while
+    // next_obs still holds the end of the finished episode.
+    let d = w.obs_dim();
+    assert_eq!(&v.obs()[d - 3..d], &[0.0, 0.0, 0.0]);
+    assert_ne!(&out.next_obs[..], &before[..]);
+}
+
+#[test]
+fn vec_env_rejects_bad_actions_without_moving_anyone() {
+    let w = world("env1", EnvConfig::default());
+    let mut v = VecEnv::new(w, 2, 1).unwrap();
+    let poses: Vec<Pose> = v.envs().iter().map(|e| e.pose()).collect();
+    let mut out = VecStep::default();
+    let e = v.step(&[1.0, 0.0, f32::NAN, 0.0], &mut out).unwrap_err().to_string();
+    assert!(e.contains("vehicle 1"), "{e}");
+    assert!(v.step(&[1.0, 0.0], &mut out).is_err(), "wrong length");
+    let after: Vec<Pose> = v.envs().iter().map(|e| e.pose()).collect();
+    assert_eq!(poses, after);
+}
+
+#[test]
+fn outdoor_shade_time_accrues_under_canopies() {
+    let w = world("outdoor20", noiseless());
+    let mut env = Env::new(Arc::clone(&w), 2);
+    let mut obs = vec![0.0; w.obs_dim()];
+    // Under the canopy of the tree at (−1, 5), 1.2 m east of the trunk, standing still 10 steps.
+    env.reset_to(Pose { x_m: 0.2, y_m: 5.0, heading_rad: 0.0 }, &mut obs);
+    for _ in 0..10 {
+        env.step([-1.0, 0.0], &mut obs).unwrap();
+    }
+    assert!((env.summary(None).shaded_time_s - 1.0).abs() < 1e-9);
+}
+
+#[test]
+fn dense_scans_of_100_and_1080_beams_work() {
+    for (beams, fov) in [(100usize, std::f64::consts::FRAC_PI_2), (1080, 1.5 * std::f64::consts::PI)] {
+        let mut cfg = noiseless();
+        cfg.sensor.beams = beams;
+        cfg.sensor.fov_rad = fov;
+        let w = world("env2", cfg);
+        let mut v = VecEnv::new(w, 2, 3).unwrap();
+        assert_eq!(v.obs_dim(), 2 * beams + 3);
+        let mut out = VecStep::default();
+        v.step(&[0.5, 0.1, 0.5, -0.1], &mut out).unwrap();
+        assert!(out.next_obs.iter().all(|x| x.is_finite() && *x >= -1.0 && *x <= 1.0 || x.abs() < 100.0));
+    }
+}
