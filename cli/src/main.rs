@@ -1,1 +1,267 @@
-fn main() {}
+//! `mapless` — the command-line entry point.
+//!
+//! ```text
+//!   mapless maps list                      built-in maps and what they hold
+//!   mapless maps show env2 --out env2.png  a map as a picture
+//!   mapless maps rasterize env2 --out DIR  a map as a ROS map_server map (YAML + PGM)
+//!   mapless rollout --map env1 --out DIR   one simulated episode: trajectory picture + JSON
+//!   mapless bench sim [--json]             simulator throughput (vehicle-steps/s)
+//! ```
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use mapless_sim::render::{Canvas, default_px_per_m};
+use mapless_sim::{Env, EnvConfig, Map, RaycastMethod, RewardConfig, World};
+use rand::{Rng, SeedableRng};
+
+#[derive(Parser)]
+#[command(name = "mapless", version, about = "Map-free exploration by deep RL: simulator, training cluster, tools")]
+struct Cli {
+    /// Log as JSON lines instead of human-readable text.
+    #[arg(long, global = true)]
+    log_json: bool,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Built-in and user maps.
+    Maps {
+        #[command(subcommand)]
+        cmd: MapsCmd,
+    },
+    /// Drive one simulated episode and draw it.
+    Rollout(RolloutArgs),
+    /// Measure throughput.
+    Bench {
+        #[command(subcommand)]
+        cmd: BenchCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum MapsCmd {
+    /// List the built-in maps.
+    List,
+    /// Draw a map (built-in name or path to a vector / ROS map YAML) to PNG.
+    Show {
+        map: String,
+        #[arg(long)]
+        out: PathBuf,
+        /// Pixels per metre (default: about 900 px across).
+        #[arg(long)]
+        px_per_m: Option<f32>,
+    },
+    /// Write a map as a ROS map_server map (NAME.yaml + NAME.pgm) for ROS tools and peers.
+    Rasterize {
+        map: String,
+        /// Metres per pixel.
+        #[arg(long, default_value_t = 0.05)]
+        resolution: f64,
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Driver {
+    /// Hand-written reactive driver (turn towards open space); not learned.
+    Wander,
+    /// Uniform random actions.
+    Random,
+}
+
+#[derive(clap::Args)]
+struct RolloutArgs {
+    /// Built-in map name or path to a map YAML.
+    #[arg(long, default_value = "env1")]
+    map: String,
+    /// Who drives.
+    #[arg(long, value_enum, default_value = "wander")]
+    driver: Driver,
+    /// Step limit (the episode may end earlier in a collision).
+    #[arg(long, default_value_t = 1000)]
+    steps: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Reward preset: exploration (eq. 1) or search_and_rescue (eq. 2).
+    #[arg(long, default_value = "exploration")]
+    reward: String,
+    /// Output folder: trajectory.png and episode.json.
+    #[arg(long, default_value = "runs/rollout")]
+    out: PathBuf,
+    /// Print the episode summary as one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Subcommand)]
+enum BenchCmd {
+    /// Vehicle-steps per second on one core, per scan preset (7, 100, 1080 beams).
+    Sim {
+        #[arg(long, default_value = "env2")]
+        map: String,
+        /// Seconds per configuration.
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+        /// Vehicles per vectorised step.
+        #[arg(long, default_value_t = 64)]
+        vehicles: usize,
+        /// One JSON object per line: {"bench", "config", "value", "unit"}.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    init_logging(cli.log_json);
+    if let Err(e) = run(cli) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn init_logging(json: bool) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let b = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    if json { b.json().init() } else { b.init() }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.cmd {
+        Cmd::Maps { cmd: MapsCmd::List } => maps_list(),
+        Cmd::Maps { cmd: MapsCmd::Show { map, out, px_per_m } } => maps_show(&map, &out, px_per_m),
+        Cmd::Maps { cmd: MapsCmd::Rasterize { map, resolution, out } } => maps_rasterize(&map, resolution, &out),
+        Cmd::Rollout(a) => rollout(a),
+        Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
+    }
+}
+
+fn maps_list() -> Result<()> {
+    for name in mapless_sim::map::BUILTIN_MAPS {
+        let m = Map::builtin(name)?;
+        println!("{name:<10} {:>3.0} m x {:<3.0} m  {:>2} obstacles  {} shaded  {}", m.bounds.width(), m.bounds.height(), m.obstacles.len(), m.shaded.len(), m.description);
+    }
+    Ok(())
+}
+
+fn maps_show(map: &str, out: &PathBuf, px_per_m: Option<f32>) -> Result<()> {
+    let m = Map::resolve(map)?;
+    let ppm = px_per_m.unwrap_or_else(|| default_px_per_m(&m));
+    let title = format!("{}  {:.0} M X {:.0} M", m.name, m.bounds.width(), m.bounds.height());
+    let mut c = Canvas::map(&m, ppm, &title)?;
+    c.footer(&format!("{} OBSTACLES, {} SHADED REGIONS", m.obstacles.len(), m.shaded.len()));
+    c.save_png(out)?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn maps_rasterize(map: &str, resolution: f64, out: &PathBuf) -> Result<()> {
+    let m = Map::resolve(map)?;
+    let (w, h, px) = m.rasterize(resolution)?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut pgm = format!("P5\n# mapless maps rasterize {map}\n{w} {h}\n255\n").into_bytes();
+    pgm.extend_from_slice(&px);
+    let pgm_path = out.join(format!("{}.pgm", m.name));
+    std::fs::write(&pgm_path, pgm).with_context(|| format!("writing {}", pgm_path.display()))?;
+    let yaml = format!(
+        "image: {}.pgm\nresolution: {resolution}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: trinary\n",
+        m.name, m.bounds.min_x, m.bounds.min_y
+    );
+    let yaml_path = out.join(format!("{}.yaml", m.name));
+    std::fs::write(&yaml_path, yaml).with_context(|| format!("writing {}", yaml_path.display()))?;
+    println!("wrote {} ({w}x{h} px at {resolution} m) and {}", pgm_path.display(), yaml_path.display());
+    Ok(())
+}
+
+fn rollout(a: RolloutArgs) -> Result<()> {
+    let map = Map::resolve(&a.map)?;
+    let mut cfg = EnvConfig { reward: RewardConfig::preset(&a.reward)?, ..EnvConfig::default() };
+    cfg.episode.max_steps = a.steps;
+    let world = World::new(map, cfg)?;
+    let mut env = Env::new(Arc::clone(&world), a.seed);
+    env.record_trajectory(true);
+    let mut obs = vec![0.0; world.obs_dim()];
+    env.reset(&mut obs)?;
+    let angles = world.cfg.sensor.beam_angles_rad();
+    let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(a.seed ^ 0x5EED);
+    let mut last = None;
+    tracing::info!(map = %world.map.name, steps = a.steps, seed = a.seed, "rollout started");
+    for _ in 0..a.steps {
+        let action = match a.driver {
+            Driver::Wander => mapless_sim::baseline::wander(env.ranges_m(), &angles, world.cfg.sensor.max_range_m),
+            Driver::Random => [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)],
+        };
+        let o = env.step(action, &mut obs)?;
+        last = Some(o);
+        if o.done() {
+            break;
+        }
+    }
+    let s = env.summary(last);
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let png = a.out.join("trajectory.png");
+    let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} ROLLOUT, SEED {}", world.map.name, a.seed))?;
+    let traj = env.trajectory().unwrap_or(&[]);
+    c.episode(&world.map, traj, env.tracker(), world.cfg.exploration.ring_width_m, s.terminal);
+    let shade = if world.map.shaded.is_empty() { String::new() } else { format!("  SHADE {:.0} S", s.shaded_time_s) };
+    let end = if s.terminal { "  COLLISION" } else { "" };
+    c.footer(&format!("STEPS {}  RETURN {:.1}  EQS {}  EES {:.2}  DIST {:.1} M{shade}{end}", s.steps, s.return_, s.eqs, s.ees, s.distance_m));
+    c.save_png(&png)?;
+    let json = serde_json::json!({
+        "map": world.map.name, "seed": a.seed, "steps": s.steps, "return": s.return_,
+        "terminal": s.terminal, "truncated": s.truncated, "eqs": s.eqs, "ees": s.ees,
+        "distance_m": s.distance_m, "shaded_time_s": s.shaded_time_s,
+    });
+    std::fs::write(a.out.join("episode.json"), serde_json::to_string_pretty(&json)?)?;
+    if a.json {
+        println!("{json}");
+    } else {
+        println!(
+            "{}: {} steps ({}), return {:.1}, EQS {}, EES {:.2}, distance {:.1} m, shaded {:.1} s",
+            world.map.name,
+            s.steps,
+            if s.terminal { "collision" } else if s.truncated { "step limit" } else { "stopped" },
+            s.return_,
+            s.eqs,
+            s.ees,
+            s.distance_m,
+            s.shaded_time_s
+        );
+        println!("wrote {} and {}", png.display(), a.out.join("episode.json").display());
+    }
+    Ok(())
+}
+
+fn bench_sim(map: &str, seconds: f64, vehicles: usize, json: bool) -> Result<()> {
+    use mapless_sim::bench::{SCAN_PRESETS, bench_env, measure};
+    if !(seconds > 0.0) || vehicles == 0 {
+        bail!("--seconds must be > 0 and --vehicles ≥ 1");
+    }
+    if !json {
+        println!("simulator throughput, one thread, {vehicles} vehicles per step, map {map}, {seconds} s each");
+    }
+    for preset in SCAN_PRESETS {
+        let mut env = bench_env(map, preset, RaycastMethod::Auto, vehicles)?;
+        let r = measure(&mut env, Duration::from_secs_f64(seconds))?;
+        if json {
+            let line = serde_json::json!({
+                "bench": "sim.vehicle_steps_per_s",
+                "config": {"map": map, "beams": preset.beams, "fov_deg": preset.fov_rad.to_degrees().round(), "vehicles": vehicles, "threads": 1, "method": "auto", "seconds": r.seconds},
+                "value": r.steps_per_s().round(),
+                "unit": "steps/s",
+            });
+            println!("{line}");
+        } else {
+            println!("  {:<40} {:>12.0} steps/s   ({} steps, {} episodes)", preset.label, r.steps_per_s(), r.steps, r.episodes);
+        }
+    }
+    Ok(())
+}

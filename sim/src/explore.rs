@@ -78,8 +78,9 @@ impl ExplorationTracker {
 
     #[inline]
     fn mark(&mut self, x: f64, y: f64) {
-        let i = (((x - self.origin.0) / self.side_m).floor().max(0.0) as usize).min(self.nx - 1);
-        let j = (((y - self.origin.1) / self.side_m).floor().max(0.0) as usize).min(self.ny - 1);
+        // Clamped at 0 first, so truncation is floor.
+        let i = (((x - self.origin.0) / self.side_m).max(0.0) as usize).min(self.nx - 1);
+        let j = (((y - self.origin.1) / self.side_m).max(0.0) as usize).min(self.ny - 1);
         let k = j * self.nx + i;
         let (word, bit) = (k / 64, 1u64 << (k % 64));
         if self.visited[word] & bit == 0 {

@@ -12,6 +12,8 @@
 //! seed fixes an episode exactly. Units are in names (`range_m`, `heading_rad`). Every number
 //! is a config field documented with its source (`config`).
 
+pub mod baseline;
+pub mod bench;
 pub mod config;
 pub mod env;
 pub mod error;

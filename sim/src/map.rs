@@ -323,6 +323,34 @@ impl Map {
         })
     }
 
+    /// Rasterises the map as a ROS map_server occupancy image at `resolution_m` per pixel:
+    /// returns (width, height, pixels row 0 = top, 0 = occupied, 254 = free). A pixel is occupied
+    /// if its centre is not free or lies within half a pixel diagonal of an obstacle surface, so
+    /// thin walls stay closed in the raster.
+    pub fn rasterize(&self, resolution_m: f64) -> Result<(usize, usize, Vec<u8>)> {
+        if !(resolution_m.is_finite() && resolution_m > 0.0) {
+            return Err(SimError::InvalidConfig(format!("resolution must be > 0, got {resolution_m}")));
+        }
+        let w = (self.bounds.width() / resolution_m).ceil() as usize;
+        let h = (self.bounds.height() / resolution_m).ceil() as usize;
+        if w == 0 || h == 0 || w > 20_000 || h > 20_000 {
+            return Err(SimError::InvalidConfig(format!("raster of {w}x{h} pixels is out of range")));
+        }
+        let scene = self.scene(0.0, 2.0);
+        let half_diag = resolution_m * std::f64::consts::FRAC_1_SQRT_2;
+        let mut px = vec![254u8; w * h];
+        for row in 0..h {
+            let y = self.bounds.max_y - (row as f64 + 0.5) * resolution_m;
+            for col in 0..w {
+                let x = self.bounds.min_x + (col as f64 + 0.5) * resolution_m;
+                if !self.is_free(x, y) || scene.distance_to_nearest(x, y) <= half_diag {
+                    px[row * w + col] = 0;
+                }
+            }
+        }
+        Ok((w, h, px))
+    }
+
     /// True if the point lies in a shaded region.
     pub fn in_shade(&self, x: f64, y: f64) -> bool {
         self.shaded.iter().any(|r| r.contains(x, y))

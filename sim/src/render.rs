@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use tiny_skia::{Color, FillRule, Paint, PathBuilder, Pixmap, Rect, Stroke, StrokeDash, Transform};
+use tiny_skia::{Color, FillRule, Mask, Paint, PathBuilder, Pixmap, Rect, Stroke, StrokeDash, Transform};
 
 use crate::error::{Result, SimError};
 use crate::explore::ExplorationTracker;
@@ -16,7 +16,7 @@ use crate::map::{Map, Obstacle, Region};
 
 const MARGIN_PX: f32 = 24.0;
 const TITLE_PX: f32 = 40.0;
-const FOOTER_PX: f32 = 36.0;
+const FOOTER_PX: f32 = 46.0;
 
 /// A map drawn at a fixed scale, ready for overlays.
 pub struct Canvas {
@@ -53,15 +53,7 @@ impl Canvas {
         for r in &map.shaded {
             c.fill_region(r, paint(60, 160, 60, 90));
         }
-        for o in &map.obstacles {
-            c.draw_obstacle(o);
-        }
-        if map.grid.is_none() {
-            let black = paint(20, 20, 20, 255);
-            for s in map.segments() {
-                c.line(s[0], s[1], s[2], s[3], 2.0, &black, None);
-            }
-        }
+        c.draw_obstacles(map);
         c.text(MARGIN_PX, 12.0, 2.0, title, [20, 20, 20]);
         c.scale_bar(map);
         Ok(c)
@@ -116,6 +108,19 @@ impl Canvas {
         pb.finish()
     }
 
+    /// Obstacles and walls (vector maps; grid maps are painted cell by cell).
+    fn draw_obstacles(&mut self, map: &Map) {
+        for o in &map.obstacles {
+            self.draw_obstacle(o);
+        }
+        if map.grid.is_none() {
+            let black = paint(20, 20, 20, 255);
+            for s in map.segments() {
+                self.line(s[0], s[1], s[2], s[3], 2.0, &black, None);
+            }
+        }
+    }
+
     fn draw_obstacle(&mut self, o: &Obstacle) {
         let fill = paint(90, 90, 90, 255);
         let path = match o {
@@ -150,14 +155,20 @@ impl Canvas {
 
     /// Text in the 5×7 font at pixel (x, y) (top-left), each font pixel `scale` pixels.
     pub fn text(&mut self, x: f32, y: f32, scale: f32, s: &str, rgb: [u8; 3]) {
-        let p = paint(rgb[0], rgb[1], rgb[2], 255);
+        let mut p = paint(rgb[0], rgb[1], rgb[2], 255);
+        p.anti_alias = false; // font pixels are squares; AA fill of off-canvas rects trips tiny-skia
+        let (w, h) = (self.pixmap.width() as f32, self.pixmap.height() as f32);
         for (i, ch) in s.chars().enumerate() {
             let g = font::glyph(ch);
             let gx = x + i as f32 * 6.0 * scale;
             for (row, bits) in g.iter().enumerate() {
                 for col in 0..5 {
                     if bits & (0x10 >> col) != 0 {
-                        if let Some(r) = Rect::from_xywh(gx + col as f32 * scale, y + row as f32 * scale, scale, scale) {
+                        let (rx, ry) = (gx + col as f32 * scale, y + row as f32 * scale);
+                        if rx < 0.0 || ry < 0.0 || rx + scale > w || ry + scale > h {
+                            continue;
+                        }
+                        if let Some(r) = Rect::from_xywh(rx, ry, scale, scale) {
                             self.pixmap.fill_rect(r, &p, Transform::identity(), None);
                         }
                     }
@@ -176,7 +187,7 @@ impl Canvas {
         if let Some(r) = Rect::from_xywh(x, y, len, 4.0) {
             self.pixmap.fill_rect(r, &black, Transform::identity(), None);
         }
-        self.text(x + len + 8.0, y - 3.0, 1.5, &format!("{metres} M"), [20, 20, 20]);
+        self.text(x + len + 8.0, y - 5.0, 2.0, &format!("{metres} M"), [20, 20, 20]);
     }
 
     /// Overlays an episode: visited EQS cells, rings around the start, the path, start and end.
@@ -193,21 +204,31 @@ impl Canvas {
                 self.pixmap.fill_rect(r, &cell_paint, Transform::identity(), None);
             }
         }
+        // Obstacles stay visible over the cell shading.
+        self.draw_obstacles(map);
         // Rings up to the farthest map corner.
         let b = map.bounds;
         let far = [(b.min_x, b.min_y), (b.max_x, b.min_y), (b.min_x, b.max_y), (b.max_x, b.max_y)].iter().map(|(x, y)| (x - start[0]).hypot(y - start[1])).fold(0.0, f64::max);
         let ring_paint = paint(120, 120, 120, 200);
         let (sx, sy) = self.px(start[0], start[1]);
+        // Rings are clipped to the map area.
+        let clip = self.map_mask(map);
         let mut n = 1;
         while (n as f64 - 1.0) * ring_width_m < far {
             let r = (n as f64 * ring_width_m) as f32 * self.px_per_m;
             if let Some(path) = PathBuilder::from_circle(sx, sy, r) {
-                let stroke = Stroke { width: 1.0, dash: StrokeDash::new(vec![6.0, 4.0], 0.0), ..Stroke::default() };
-                self.pixmap.stroke_path(&path, &ring_paint, &stroke, Transform::identity(), None);
+                let stroke = Stroke { width: 1.5, dash: StrokeDash::new(vec![6.0, 4.0], 0.0), ..Stroke::default() };
+                self.pixmap.stroke_path(&path, &ring_paint, &stroke, Transform::identity(), clip.as_ref());
             }
+            // Label each ring inside its band, on the diagonal towards the map's centre.
             let label_r = (n as f64 - 0.5) * ring_width_m;
-            let (lx, ly) = self.px(start[0] + label_r * 0.7071, start[1] + label_r * 0.7071);
-            self.text(lx - 3.0, ly - 5.0, 1.5, &n.to_string(), [110, 110, 110]);
+            let (mx, my) = ((b.min_x + b.max_x) / 2.0 - start[0], (b.min_y + b.max_y) / 2.0 - start[1]);
+            let (ux, uy) = (if mx >= 0.0 { 0.7071 } else { -0.7071 }, if my >= 0.0 { 0.7071 } else { -0.7071 });
+            let (wx, wy) = (start[0] + label_r * ux, start[1] + label_r * uy);
+            if b.contains(wx, wy) {
+                let (lx, ly) = self.px(wx, wy);
+                self.text(lx - 5.0, ly - 7.0, 2.0, &n.to_string(), [110, 110, 110]);
+            }
             n += 1;
         }
         // The path.
@@ -238,10 +259,19 @@ impl Canvas {
         }
     }
 
+    /// A mask that lets drawing through only inside the map's bounds.
+    fn map_mask(&self, map: &Map) -> Option<Mask> {
+        let (x0, y0) = self.px(map.bounds.min_x, map.bounds.max_y);
+        let rect = Rect::from_xywh(x0, y0, map.bounds.width() as f32 * self.px_per_m, map.bounds.height() as f32 * self.px_per_m)?;
+        let mut mask = Mask::new(self.pixmap.width(), self.pixmap.height())?;
+        mask.fill_path(&PathBuilder::from_rect(rect), FillRule::Winding, false, Transform::identity());
+        Some(mask)
+    }
+
     /// Writes a line of text in the footer, right of the scale bar.
     pub fn footer(&mut self, s: &str) {
-        let y = self.pixmap.height() as f32 - FOOTER_PX + 22.0;
-        self.text(MARGIN_PX, y, 1.5, s, [60, 60, 60]);
+        let y = self.pixmap.height() as f32 - FOOTER_PX + 26.0;
+        self.text(MARGIN_PX, y, 2.0, s, [60, 60, 60]);
     }
 
     pub fn width(&self) -> u32 {

@@ -1,0 +1,96 @@
+//! The `mapless` binary end to end: maps pictures, a rollout, the sim benchmark's JSON lines,
+//! and clear errors for bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn mapless(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_mapless")).args(args).env("RUST_LOG", "warn").output().expect("mapless runs")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join("cli").join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn png_size(path: &Path) -> (u32, u32) {
+    let bytes = std::fs::read(path).unwrap();
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n", "{} is a PNG", path.display());
+    let w = u32::from_be_bytes(bytes[16..20].try_into().unwrap());
+    let h = u32::from_be_bytes(bytes[20..24].try_into().unwrap());
+    (w, h)
+}
+
+#[test]
+fn maps_show_draws_every_builtin_map() {
+    let d = tmp("maps");
+    for m in ["env1", "env2", "env3", "outdoor20"] {
+        let out = d.join(format!("{m}.png"));
+        let o = mapless(&["maps", "show", m, "--out", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{m}: {}", String::from_utf8_lossy(&o.stderr));
+        let (w, h) = png_size(&out);
+        assert!(w > 800 && h > 800, "{m}: {w}x{h}");
+    }
+}
+
+#[test]
+fn rollout_writes_a_trajectory_picture_and_episode_json() {
+    let d = tmp("rollout");
+    let o = mapless(&["rollout", "--map", "env2", "--steps", "300", "--seed", "4", "--out", d.to_str().unwrap(), "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let steps = v["steps"].as_u64().unwrap();
+    assert!(steps >= 1 && steps <= 300);
+    assert_eq!(v["terminal"].as_bool().unwrap() || v["truncated"].as_bool().unwrap(), true);
+    assert!(v["eqs"].as_u64().unwrap() >= 1);
+    png_size(&d.join("trajectory.png"));
+    let file: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("episode.json")).unwrap()).unwrap();
+    assert_eq!(file, v);
+}
+
+#[test]
+fn bench_sim_json_prints_one_object_per_scan_preset() {
+    let o = mapless(&["bench", "sim", "--json", "--seconds", "0.05", "--vehicles", "4"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let lines: Vec<serde_json::Value> = String::from_utf8(o.stdout).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let beams: Vec<u64> = lines.iter().map(|l| l["config"]["beams"].as_u64().unwrap()).collect();
+    assert_eq!(beams, [7, 100, 1080]);
+    for l in &lines {
+        assert_eq!(l["bench"], "sim.vehicle_steps_per_s");
+        assert_eq!(l["unit"], "steps/s");
+        assert_eq!(l["config"]["map"], "env2");
+        assert!(l["value"].as_f64().unwrap() > 0.0);
+    }
+}
+
+#[test]
+fn bad_map_input_is_a_clear_error_not_a_panic() {
+    let d = tmp("bad");
+    let bad = d.join("bad.yaml");
+    std::fs::write(&bad, "format: mapless-vector-map/v1\nname: x\nbounds: {min: [0, 0], max: [1, 1]}\nobstacles:\n  - circle: {center: [0.5, 0.5], radius: 0}\n").unwrap();
+    let o = mapless(&["maps", "show", bad.to_str().unwrap(), "--out", d.join("x.png").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad.yaml") && err.contains("obstacle 0 (circle)"), "{err}");
+    let o = mapless(&["rollout", "--map", "nowhere", "--out", d.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("unknown map `nowhere`"));
+}
+
+#[test]
+fn rasterized_map_reloads_as_a_ros_map_with_the_same_obstacles() {
+    let d = tmp("raster");
+    let o = mapless(&["maps", "rasterize", "env2", "--resolution", "0.1", "--out", d.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ros = mapless_sim::Map::load(&d.join("env2.yaml")).unwrap();
+    let vec = mapless_sim::Map::builtin("env2").unwrap();
+    assert_eq!(ros.bounds, vec.bounds);
+    // The central disc (r = 1.5 at the origin) is blocked, open floor is free in both.
+    assert!(!ros.is_free(0.0, 0.0) && !vec.is_free(0.0, 0.0));
+    assert!(ros.is_free(-18.0, 18.0) && vec.is_free(-18.0, 18.0));
+    // A ray from (−18, 0) east meets the box at x = −15 in both (to within a pixel).
+    let (a, b) = (ros.scene(0.0, 2.0).cast_ray(-18.0, 0.0, 1.0, 0.0, 12.0), vec.scene(0.0, 2.0).cast_ray(-18.0, 0.0, 1.0, 0.0, 12.0));
+    assert!((a - b).abs() <= 0.11, "{a} vs {b}");
+}

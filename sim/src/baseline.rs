@@ -1,0 +1,42 @@
+//! A hand-written reactive driver (no learning): steer towards the side with more room, slow
+//! down when the way ahead closes. It gives demos and tests a sensible non-random trajectory and
+//! is a floor that learned policies should beat on EQS/EES. It is not from the paper.
+
+/// Action in [−1, 1]² from measured ranges (metres) at beam angles relative to the heading.
+pub fn wander(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64) -> [f32; 2] {
+    let mut left = 0.0f64;
+    let mut right = 0.0f64;
+    let mut front = max_range_m;
+    for (r, a) in ranges_m.iter().zip(beam_angles_rad) {
+        let r = *r as f64;
+        if a.abs() < 0.3 {
+            front = front.min(r);
+        }
+        if *a > 0.0 {
+            left += r * a.sin();
+        } else {
+            right -= r * a.sin();
+        }
+    }
+    let turn = ((left - right) / (left + right).max(1e-6)).clamp(-1.0, 1.0);
+    // Full speed with 3 m of room ahead, stop at 0.6 m.
+    let speed = ((front - 0.6) / 2.4).clamp(0.0, 1.0);
+    let turn = if front < 2.0 { turn.signum() } else { turn };
+    [(2.0 * speed - 1.0) as f32, turn as f32]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn turns_towards_open_side_and_slows_for_walls() {
+        let angles = [-1.0, 0.0, 1.0];
+        // Open on the left (positive angles).
+        let a = wander(&[1.0, 12.0, 12.0], &angles, 12.0);
+        assert!(a[1] > 0.0 && a[0] == 1.0);
+        // Wall 0.5 m ahead: stop, turn hard.
+        let a = wander(&[3.0, 0.5, 1.0], &angles, 12.0);
+        assert_eq!(a, [-1.0, -1.0]);
+    }
+}

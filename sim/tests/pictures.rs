@@ -1,0 +1,63 @@
+//! Pictures: maps and episodes drawn to PNG show what they should where they should.
+
+use std::sync::Arc;
+
+use mapless_sim::render::{Canvas, default_px_per_m};
+use mapless_sim::{Env, EnvConfig, Map, Pose, World};
+
+fn is_dark(p: [u8; 4]) -> bool {
+    p[0] < 130 && p[1] < 130 && p[2] < 130
+}
+
+#[test]
+fn map_picture_shows_obstacles_free_floor_and_shade() {
+    let map = Map::builtin("outdoor20").unwrap();
+    let c = Canvas::map(&map, 20.0, "OUTDOOR20").unwrap();
+    let at = |x: f64, y: f64| {
+        let (px, py) = c.world_to_px(x, y);
+        c.pixel(px as u32, py as u32).unwrap()
+    };
+    assert!(is_dark(at(-4.0, -5.0)), "boulder centre is dark: {:?}", at(-4.0, -5.0));
+    assert!(!is_dark(at(5.0, 0.0)), "open ground is light");
+    let shade = at(-6.0, 1.5); // under the canopy of the tree at (−6, 0), off the trunk
+    assert!(shade[1] > shade[0] + 30 && shade[1] > shade[2] + 30, "canopy is green: {shade:?}");
+    // 20 m at 20 px/m plus margins, title and footer.
+    assert!(c.width() >= 400 && c.height() >= 400);
+}
+
+#[test]
+fn episode_picture_marks_visited_cells_and_writes_a_png() {
+    let mut cfg = EnvConfig::default();
+    cfg.sensor.noise_std_m = 0.0;
+    let world = World::new(Map::builtin("env1").unwrap(), cfg).unwrap();
+    let mut env = Env::new(Arc::clone(&world), 0);
+    env.record_trajectory(true);
+    let mut obs = vec![0.0; world.obs_dim()];
+    env.reset_to(Pose { x_m: -10.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    for _ in 0..200 {
+        env.step([1.0, 0.0], &mut obs).unwrap(); // 10 m east
+    }
+    let map = &world.map;
+    let mut c = Canvas::map(map, default_px_per_m(map), "ENV1").unwrap();
+    // Cells are anchored at the map corner (−12.5, −12.5), side √2: the path y = 0 runs in the
+    // row y ∈ [−1.19, 0.23], so (−5, −0.8) is inside a visited cell, off the drawn line.
+    let before = {
+        let (px, py) = c.world_to_px(-5.0, -0.8);
+        c.pixel(px as u32, py as u32).unwrap()
+    };
+    let far_before = {
+        let (px, py) = c.world_to_px(-5.0, 8.0);
+        c.pixel(px as u32, py as u32).unwrap()
+    };
+    c.episode(map, env.trajectory().unwrap(), env.tracker(), 10.0, false);
+    let (px, py) = c.world_to_px(-5.0, -0.8);
+    let after = c.pixel(px as u32, py as u32).unwrap();
+    assert!(after[2] > after[0] && after != before, "visited cell is tinted blue: {before:?} -> {after:?}");
+    let (px, py) = c.world_to_px(-5.0, 8.0);
+    assert_eq!(c.pixel(px as u32, py as u32).unwrap(), far_before, "unvisited cells untouched");
+    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("pictures/episode.png");
+    c.save_png(&path).unwrap();
+    let dec = png::Decoder::new(std::fs::File::open(&path).unwrap());
+    let info = dec.read_info().unwrap().info().clone();
+    assert_eq!((info.width, info.height), (c.width(), c.height()));
+}
