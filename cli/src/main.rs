@@ -215,11 +215,9 @@ fn rollout(a: RolloutArgs) -> Result<()> {
     let end = if s.terminal { "  COLLISION" } else { "" };
     c.footer(&format!("STEPS {}  RETURN {:.1}  EQS {}  EES {:.2}  DIST {:.1} M{shade}{end}", s.steps, s.return_, s.eqs, s.ees, s.distance_m));
     c.save_png(&png)?;
-    let json = serde_json::json!({
-        "map": world.map.name, "seed": a.seed, "steps": s.steps, "return": s.return_,
-        "terminal": s.terminal, "truncated": s.truncated, "eqs": s.eqs, "ees": s.ees,
-        "distance_m": s.distance_m, "shaded_time_s": s.shaded_time_s,
-    });
+    let mut json = serde_json::to_value(&s)?;
+    json["map"] = world.map.name.clone().into();
+    json["seed"] = a.seed.into();
     std::fs::write(a.out.join("episode.json"), serde_json::to_string_pretty(&json)?)?;
     if a.json {
         println!("{json}");

@@ -84,6 +84,7 @@ impl StepOutcome {
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct EpisodeSummary {
     pub episode_id: u64,
+    #[serde(rename = "return")]
     pub return_: f64,
     pub steps: u32,
     pub terminal: bool,

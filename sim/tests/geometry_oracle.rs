@@ -127,3 +127,29 @@ fn sensor_height_hides_low_obstacles() {
     assert_eq!(map.scene(2.0, 1.0).circle_count(), 4);
     assert_eq!(map.scene(2.0, 1.0).segment_count(), 4);
 }
+
+#[test]
+fn both_ray_casters_give_the_same_scan_for_every_field_of_view() {
+    use mapless_sim::sensor::RangeSensor;
+    use mapless_sim::{Pose, RaycastMethod, SensorConfig};
+    let mut rng = Pcg64Mcg::seed_from_u64(9);
+    let fovs = [3.0 * std::f64::consts::FRAC_PI_4, std::f64::consts::FRAC_PI_2, 1.5 * std::f64::consts::PI, std::f64::consts::TAU];
+    for name in ["env2", "env3", "outdoor20"] {
+        let map = Map::builtin(name).unwrap();
+        let scene = map.scene(0.15, 2.0);
+        for (beams, fov) in [7usize, 100, 1080].into_iter().zip(fovs).chain([(360, fovs[3])]) {
+            let cfg = |method| SensorConfig { beams, fov_rad: fov, noise_std_m: 0.0, method, ..SensorConfig::default() };
+            let (mut per_beam, mut fan) = (RangeSensor::new(&cfg(RaycastMethod::PerBeam)), RangeSensor::new(&cfg(RaycastMethod::Fan)));
+            let (mut a, mut b) = (vec![0.0f32; beams], vec![0.0f32; beams]);
+            for _ in 0..25 {
+                let (x, y) = free_point(&map, &mut rng);
+                let pose = Pose { x_m: x, y_m: y, heading_rad: rng.random_range(-3.14..3.14) };
+                per_beam.scan_exact(&scene, &pose, &mut a);
+                fan.scan_exact(&scene, &pose, &mut b);
+                for k in 0..beams {
+                    assert!((a[k] - b[k]).abs() <= 1e-3 + 1e-4 * a[k], "{name} {beams} beams fov {fov}: beam {k} per-beam {} vs fan {} at {pose:?}", a[k], b[k]);
+                }
+            }
+        }
+    }
+}
