@@ -1,0 +1,44 @@
+//! The replay library's one error type, with its gRPC status.
+
+use mapless_proto::ProtoError;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    /// A batch, request or update that breaks the wire contract (wrong dims, NaN, …).
+    #[error(transparent)]
+    Invalid(#[from] ProtoError),
+    /// A request that names something that does not exist or is out of range.
+    #[error("{0}")]
+    BadRequest(String),
+    /// The rate limiter did not allow the call before its deadline.
+    #[error("{op} blocked by the rate limiter for {waited_ms} ms (deadline reached): {state}")]
+    DeadlineExceeded { op: &'static str, waited_ms: u64, state: String },
+    /// The table is shutting down.
+    #[error("table `{0}` is closed")]
+    Closed(String),
+    #[error("invalid config: {0}")]
+    InvalidConfig(String),
+    /// Disk trouble in the log or snapshots; names the file.
+    #[error("storage {path}: {problem}")]
+    Storage { path: std::path::PathBuf, problem: String },
+}
+
+impl ReplayError {
+    /// The gRPC status a client sees.
+    pub fn to_status(&self) -> tonic_status::Status {
+        use tonic_status::{Code, Status};
+        match self {
+            ReplayError::Invalid(e) => e.to_status(),
+            ReplayError::BadRequest(m) => Status::new(Code::InvalidArgument, m.clone()),
+            ReplayError::DeadlineExceeded { .. } => Status::new(Code::DeadlineExceeded, self.to_string()),
+            ReplayError::Closed(_) => Status::new(Code::Unavailable, self.to_string()),
+            ReplayError::InvalidConfig(_) => Status::new(Code::FailedPrecondition, self.to_string()),
+            ReplayError::Storage { .. } => Status::new(Code::Internal, self.to_string()),
+        }
+    }
+}
+
+/// tonic's status types, re-exported so callers need not name tonic's version.
+pub mod tonic_status {
+    pub use tonic::{Code, Status};
+}

@@ -1,0 +1,21 @@
+//! `mapless-replay` — the experience store every actor writes to and the learner samples from.
+//!
+//! ```text
+//!   actors ──gRPC Insert / iceoryx2──► Table (ring columns + sum tree + rate limiter)
+//!                                        │            ▲ UpdatePriorities
+//!                                        ▼            │
+//!                                   Sample stream ──► learner
+//! ```
+//!
+//! Anchored on DeepMind Reverb (tables, selectors, a rate limiter), with exactly-once inserts
+//! on (actor id, sequence). This crate never links libtorch.
+
+pub mod config;
+pub mod error;
+pub mod rate_limiter;
+pub mod sum_tree;
+pub mod table;
+
+pub use config::{RateLimiterConfig, SamplerConfig, TableConfig};
+pub use error::ReplayError;
+pub use table::{ActorStats, Table};

@@ -1,0 +1,256 @@
+//! The table's behaviour: rate limiting, prioritised sampling, FIFO eviction, exactly-once
+//! inserts and untouched state on bad input.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use mapless_proto::v1::TransitionBatch;
+use mapless_proto::{Transition, TransitionBatchBuilder};
+use mapless_replay::{RateLimiterConfig, ReplayError, SamplerConfig, Table, TableConfig};
+
+const D: usize = 3;
+
+fn cfg(capacity: usize) -> TableConfig {
+    TableConfig {
+        capacity,
+        obs_dim: D,
+        act_dim: 2,
+        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, error_buffer: 0.0 },
+        max_batch_rows: 1000,
+        max_sample_rows: 1000,
+        ..TableConfig::default()
+    }
+}
+
+/// `rows` transitions whose reward (and obs[0]) is `first_reward + i`.
+fn batch(actor: &str, seq: u64, first_reward: f32, rows: usize) -> TransitionBatch {
+    let mut b = TransitionBatchBuilder::new(D, 2);
+    for i in 0..rows {
+        let r = first_reward + i as f32;
+        b.push(Transition { obs: &[r, 0.0, 0.0], action: &[0.1, -0.1], reward: r, next_obs: &[r, 1.0, 0.0], terminal: i % 7 == 6, truncated: false, episode_id: 1, step: i as u32, policy_version: 3 }).unwrap();
+    }
+    b.finish(actor, seq)
+}
+
+fn soon() -> Option<Instant> {
+    Some(Instant::now() + Duration::from_millis(50))
+}
+
+#[test]
+fn blocks_samples_until_min_size_reached() {
+    let mut c = cfg(100);
+    c.rate_limiter.min_size_to_sample = 10;
+    let t = Table::new(c, 1).unwrap();
+    t.insert(&batch("a", 1, 0.0, 9), None).unwrap();
+    let e = t.sample(1, None, soon()).unwrap_err();
+    assert!(matches!(e, ReplayError::DeadlineExceeded { op: "sample", .. }), "{e}");
+    assert_eq!(e.to_status().code(), tonic::Code::DeadlineExceeded);
+    t.insert(&batch("a", 2, 9.0, 1), None).unwrap();
+    assert_eq!(t.sample(4, None, soon()).unwrap().num_rows, 4);
+}
+
+#[test]
+fn blocked_sampler_wakes_when_an_insert_arrives() {
+    let mut c = cfg(100);
+    c.rate_limiter.min_size_to_sample = 5;
+    let t = Arc::new(Table::new(c, 1).unwrap());
+    let t2 = Arc::clone(&t);
+    let waiter = std::thread::spawn(move || t2.sample(2, None, Some(Instant::now() + Duration::from_secs(10))));
+    std::thread::sleep(Duration::from_millis(50));
+    t.insert(&batch("a", 1, 0.0, 5), None).unwrap();
+    assert_eq!(waiter.join().unwrap().unwrap().num_rows, 2);
+    assert!(t.info().rate_limiter.unwrap().samples_blocked_ms >= 40);
+}
+
+#[test]
+fn ratio_is_held_within_its_band_under_concurrent_insert_and_sample() {
+    // 4 sampled rows per inserted row, min size 20, buffer 200: diff stays in
+    // [4·20 − 200, 4·20 + 200] give or take one batch.
+    let mut c = cfg(10_000);
+    c.rate_limiter = RateLimiterConfig { min_size_to_sample: 20, samples_per_insert: Some(4.0), error_buffer: 200.0 };
+    c.max_batch_rows = 10;
+    c.max_sample_rows = 32;
+    let t = Arc::new(Table::new(c, 2).unwrap());
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let inserter = {
+        let (t, stop) = (Arc::clone(&t), Arc::clone(&stop));
+        std::thread::spawn(move || {
+            let mut seq = 0;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                seq += 1;
+                match t.insert(&batch("w", seq, 0.0, 10), Some(Instant::now() + Duration::from_millis(20))) {
+                    Ok(_) | Err(ReplayError::DeadlineExceeded { .. }) => {}
+                    Err(e) => panic!("{e}"),
+                }
+            }
+        })
+    };
+    let mut worst = (f64::INFINITY, f64::NEG_INFINITY);
+    let mut sampled = 0;
+    while sampled < 3000 {
+        if t.sample(32, None, Some(Instant::now() + Duration::from_secs(5))).is_ok() {
+            sampled += 1;
+        }
+        let info = t.info();
+        let diff = info.inserts_total as f64 * 4.0 - info.samples_total as f64;
+        worst = (worst.0.min(diff), worst.1.max(diff));
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    inserter.join().unwrap();
+    // Band [−120, 280]; an insert batch may overshoot by 10 × 4 = 40.
+    assert!(worst.0 >= -120.0 && worst.1 <= 280.0 + 40.0, "diff left its band: {worst:?}");
+    let rl = t.info().rate_limiter.unwrap();
+    assert!(rl.inserts_blocked_ms > 0, "the inserter ran ahead and was held back");
+}
+
+#[test]
+fn inserts_wait_for_the_learner_when_the_ratio_runs_ahead() {
+    let mut c = cfg(1000);
+    c.rate_limiter = RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 20.0 };
+    c.max_batch_rows = 10;
+    c.max_sample_rows = 10;
+    let t = Table::new(c, 3).unwrap();
+    // max_diff = 10 + 20 = 30 rows ahead of sampling.
+    for seq in 1..=4 {
+        t.insert(&batch("a", seq, 0.0, 10), soon()).unwrap();
+    }
+    let e = t.insert(&batch("a", 5, 0.0, 10), soon()).unwrap_err();
+    assert!(matches!(e, ReplayError::DeadlineExceeded { op: "insert", .. }), "{e}");
+    t.sample(10, None, soon()).unwrap();
+    t.insert(&batch("a", 5, 0.0, 10), soon()).unwrap();
+}
+
+#[test]
+fn eviction_is_fifo() {
+    let t = Table::new(cfg(5), 4).unwrap();
+    t.insert(&batch("a", 1, 0.0, 8), None).unwrap(); // rewards 0..7; 0, 1, 2 evicted
+    assert_eq!(t.size(), 5);
+    let s = t.sample(500, None, None).unwrap();
+    let mut seen: Vec<u64> = s.keys.clone();
+    seen.sort();
+    seen.dedup();
+    assert_eq!(seen, vec![3, 4, 5, 6, 7]);
+    for (k, r) in s.keys.iter().zip(&s.reward) {
+        assert_eq!(*r, *k as f32, "row with key {k} holds its own data");
+    }
+    // The obs and next_obs columns moved with their rows.
+    for i in 0..s.num_rows as usize {
+        assert_eq!(s.obs[i * D], s.reward[i]);
+        assert_eq!(s.next_obs[i * D + 1], 1.0);
+    }
+}
+
+#[test]
+fn resent_batches_are_deduplicated_per_actor() {
+    let t = Table::new(cfg(100), 5).unwrap();
+    let first = t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    assert!(!first.duplicate && first.accepted_rows == 4);
+    let again = t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    assert!(again.duplicate && again.accepted_rows == 0);
+    assert_eq!(t.size(), 4);
+    t.insert(&batch("a", 3, 0.0, 2), None).unwrap(); // gaps are fine
+    assert!(t.insert(&batch("a", 2, 0.0, 2), None).unwrap().duplicate, "older than the last stored");
+    assert!(!t.insert(&batch("b", 1, 0.0, 2), None).unwrap().duplicate, "sequences are per actor");
+    assert_eq!(t.size(), 8);
+    let a = &t.actors()["a"];
+    assert_eq!((a.batches, a.rows, a.duplicate_batches, a.last_sequence), (2, 6, 2, 3));
+}
+
+#[test]
+fn bad_input_gets_its_status_is_counted_and_leaves_the_table_intact() {
+    let t = Table::new(cfg(100), 6).unwrap();
+    t.insert(&batch("good", 1, 0.0, 5), None).unwrap();
+    let before = t.sample(100, None, None).unwrap();
+    let mut wrong_dim = batch("bad", 1, 0.0, 2);
+    wrong_dim.obs_dim = 4;
+    let mut nan = batch("bad", 2, 0.0, 2);
+    nan.reward[1] = f32::NAN;
+    let mut version = batch("bad", 3, 0.0, 2);
+    version.protocol_version = 9;
+    let mut short = batch("bad", 4, 0.0, 2);
+    short.next_obs.pop();
+    let too_big = batch("bad", 5, 0.0, 1001);
+    for (b, code) in [(wrong_dim, tonic::Code::InvalidArgument), (nan, tonic::Code::InvalidArgument), (version, tonic::Code::FailedPrecondition), (short, tonic::Code::InvalidArgument), (too_big, tonic::Code::ResourceExhausted)] {
+        let e = t.insert(&b, None).unwrap_err();
+        assert_eq!(e.to_status().code(), code, "{e}");
+    }
+    assert_eq!(t.size(), 5);
+    assert_eq!(t.actors()["bad"].rejected_batches, 5);
+    assert!(t.actors()["bad"].last_rejection.contains("rows"), "{}", t.actors()["bad"].last_rejection);
+    let mut after = t.sample(100, None, None).unwrap();
+    let mut b = before;
+    // Same content (sampling is random: compare the sets of stored rows).
+    let sorted = |s: &mut mapless_proto::v1::SampledBatch| {
+        let mut v: Vec<(u64, u32)> = s.keys.iter().zip(&s.reward).map(|(k, r)| (*k, r.to_bits())).collect();
+        v.sort();
+        v.dedup();
+        v
+    };
+    assert_eq!(sorted(&mut b), sorted(&mut after));
+}
+
+#[test]
+fn prioritized_sampling_frequencies_match_priorities() {
+    let mut c = cfg(4);
+    c.sampler = SamplerConfig::Prioritized { alpha: 1.0, beta: 1.0, epsilon: 0.0 };
+    let t = Table::new(c, 7).unwrap();
+    t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    let (updated, unknown) = t.update_priorities(&[0, 1, 2, 3, 99], &[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
+    assert_eq!((updated, unknown), (4, 1));
+    let mut counts = [0u64; 4];
+    let draws = 200_000usize;
+    for _ in 0..draws / 100 {
+        for k in t.sample(100, None, None).unwrap().keys {
+            counts[k as usize] += 1;
+        }
+    }
+    // Expected shares 0.1, 0.2, 0.3, 0.4; Pearson χ² with 3 degrees of freedom must stay
+    // below 16.27 (p = 0.001). Stratified sampling makes it far smaller in practice.
+    let chi2: f64 = counts.iter().enumerate().map(|(i, &c)| {
+        let e = draws as f64 * (i + 1) as f64 / 10.0;
+        (c as f64 - e).powi(2) / e
+    }).sum();
+    assert!(chi2 < 16.27, "counts {counts:?}, chi2 {chi2}");
+}
+
+#[test]
+fn importance_weights_and_probabilities_are_exact() {
+    let mut c = cfg(2);
+    c.sampler = SamplerConfig::Prioritized { alpha: 1.0, beta: 0.5, epsilon: 0.0 };
+    let t = Table::new(c, 8).unwrap();
+    t.insert(&batch("a", 1, 0.0, 2), None).unwrap();
+    t.update_priorities(&[0, 1], &[1.0, 3.0]).unwrap();
+    let s = t.sample(200, None, None).unwrap();
+    // P = (0.25, 0.75); w = (N P)^−β = (0.5^−0.5, 1.5^−0.5) = (1.41421, 0.81650); ÷ max → (1, 0.57735).
+    for ((k, p), w) in s.keys.iter().zip(&s.probabilities).zip(&s.importance_weights) {
+        let (ep, ew) = if *k == 0 { (0.25, 1.0) } else { (0.75, 0.577_350_3) };
+        assert!((p - ep).abs() < 1e-12 && (*w - ew).abs() < 1e-6, "key {k}: p {p} w {w}");
+    }
+}
+
+#[test]
+fn items_leave_after_max_times_sampled() {
+    let mut c = cfg(10);
+    c.max_times_sampled = 2;
+    let t = Table::new(c, 9).unwrap();
+    t.insert(&batch("a", 1, 0.0, 3), None).unwrap();
+    let mut drawn = 0;
+    while t.size() > 0 {
+        drawn += t.sample(1, None, soon()).unwrap().num_rows;
+        assert!(drawn <= 6);
+    }
+    assert_eq!(drawn, 6, "each of 3 items sampled exactly twice");
+    assert!(t.sample(1, None, soon()).is_err());
+}
+
+#[test]
+fn close_wakes_blocked_callers() {
+    let mut c = cfg(10);
+    c.rate_limiter.min_size_to_sample = 5;
+    let t = Arc::new(Table::new(c, 10).unwrap());
+    let t2 = Arc::clone(&t);
+    let h = std::thread::spawn(move || t2.sample(1, None, None));
+    std::thread::sleep(Duration::from_millis(30));
+    t.close();
+    assert!(matches!(h.join().unwrap(), Err(ReplayError::Closed(_))));
+}
