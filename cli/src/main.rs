@@ -117,19 +117,33 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// Replay service: ingest over iceoryx2 and gRPC (1, 4, 16 writers), sampling rate and
+    /// latency (minibatches of 128), resident memory of a full table; 17- and 203-float obs.
+    Replay {
+        /// Seconds per configuration.
+        #[arg(long, default_value_t = 2.0)]
+        seconds: f64,
+        /// Rows for the memory measurement (the paper's capacity by default).
+        #[arg(long, default_value_t = 1_000_000)]
+        memory_rows: usize,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() {
     let cli = Cli::parse();
-    init_logging(cli.log_json);
+    // Benchmarks run services in-process; their per-stream info lines would drown the figures.
+    let quiet = matches!(cli.cmd, Cmd::Bench { .. });
+    init_logging(cli.log_json, if quiet { "warn" } else { "info" });
     if let Err(e) = run(cli) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
 }
 
-fn init_logging(json: bool) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+fn init_logging(json: bool, default_level: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| default_level.into());
     let b = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
     if json { b.json().init() } else { b.init() }
 }
@@ -141,6 +155,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Maps { cmd: MapsCmd::Rasterize { map, resolution, out } } => maps_rasterize(&map, resolution, &out),
         Cmd::Rollout(a) => rollout(a),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
+        Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
     }
 }
 
@@ -260,6 +275,44 @@ fn bench_sim(map: &str, seconds: f64, vehicles: usize, json: bool) -> Result<()>
         } else {
             println!("  {:<40} {:>12.0} steps/s   ({} steps, {} episodes)", preset.label, r.steps_per_s(), r.steps, r.episodes);
         }
+    }
+    Ok(())
+}
+
+/// Prints one figure: a JSON line, or a human-readable line.
+fn report(json: bool, bench: &str, config: serde_json::Value, value: f64, unit: &str) {
+    if json {
+        println!("{}", serde_json::json!({"bench": bench, "config": config, "value": (value * 100.0).round() / 100.0, "unit": unit}));
+    } else {
+        println!("  {bench:<34} {:<58} {value:>14.1} {unit}", config.to_string());
+    }
+}
+
+fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
+    use mapless_replay::bench as rb;
+    if !(seconds > 0.0) || memory_rows == 0 {
+        bail!("--seconds must be > 0 and --memory-rows ≥ 1");
+    }
+    let d = Duration::from_secs_f64(seconds);
+    if !json {
+        println!("replay service, in-process on loopback, {} rows per insert batch, {seconds} s each", rb::BATCH_ROWS);
+    }
+    // Memory first: later benchmarks leave freed pages the allocator would reuse, hiding growth.
+    let (rss, raw) = rb::memory(memory_rows, 17);
+    let cfg = serde_json::json!({"obs_dim": 17, "rows": memory_rows, "raw_payload_bytes": raw, "resident_bytes": rss});
+    report(json, "replay.memory_over_raw_payload", cfg, rss as f64 / raw as f64, "ratio");
+    for obs_dim in [17usize, 203] {
+        for writers in [1usize, 4, 16] {
+            let v = rb::grpc_ingest_rows_per_s(writers, obs_dim, d);
+            report(json, "replay.ingest_grpc_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS}), v, "rows/s");
+        }
+    }
+    for obs_dim in [17usize, 203] {
+        let s = rb::grpc_sample(100_000, obs_dim, 128, 4, d);
+        let cfg = serde_json::json!({"obs_dim": obs_dim, "batch_size": 128, "prefetch": 4, "table_rows": 100_000, "transport": "grpc"});
+        report(json, "replay.sample_minibatches_per_s", cfg.clone(), s.minibatches_per_s, "minibatches/s");
+        report(json, "replay.sample_latency_p50_us", cfg.clone(), s.p50_us, "us");
+        report(json, "replay.sample_latency_p99_us", cfg, s.p99_us, "us");
     }
     Ok(())
 }

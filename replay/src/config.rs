@@ -143,3 +143,98 @@ impl TableConfig {
         Ok(())
     }
 }
+
+/// When the log is forced to stable storage. Under every policy a batch is acknowledged only
+/// after its record has been written to the OS (write(2)), so it survives the process being
+/// killed (kill -9, OOM, panic); the policy decides what a power loss or kernel crash may take.
+///
+/// In YAML: `fsync: never`, `fsync: always` or `fsync: {interval_ms: 100}`.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(from = "FsyncRepr", into = "FsyncRepr")]
+pub enum FsyncPolicy {
+    /// Leave write-back to the OS: a power loss may take the last ~30 s (the kernel's
+    /// dirty-page expiry). For throwaway runs and tmpfs.
+    Never,
+    /// A background thread fsyncs this often when anything was written: a power loss may
+    /// take the last N ms of acknowledged batches. Inserts never wait for the disk.
+    IntervalMs(u64),
+    /// fsync before every acknowledgement: nothing acknowledged is lost even on power loss;
+    /// every insert and priority update waits for the disk, holding the table's lock.
+    Always,
+}
+
+/// [`FsyncPolicy`] as written in config files (serde's own enum forms read badly in YAML).
+#[derive(Clone, Copy, Serialize, Deserialize)]
+#[serde(untagged)]
+enum FsyncRepr {
+    Word(FsyncWord),
+    Interval {
+        interval_ms: u64,
+    },
+}
+
+#[derive(Clone, Copy, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum FsyncWord {
+    Never,
+    Always,
+}
+
+impl From<FsyncRepr> for FsyncPolicy {
+    fn from(r: FsyncRepr) -> Self {
+        match r {
+            FsyncRepr::Word(FsyncWord::Never) => FsyncPolicy::Never,
+            FsyncRepr::Word(FsyncWord::Always) => FsyncPolicy::Always,
+            FsyncRepr::Interval { interval_ms } => FsyncPolicy::IntervalMs(interval_ms),
+        }
+    }
+}
+
+impl From<FsyncPolicy> for FsyncRepr {
+    fn from(p: FsyncPolicy) -> Self {
+        match p {
+            FsyncPolicy::Never => FsyncRepr::Word(FsyncWord::Never),
+            FsyncPolicy::Always => FsyncRepr::Word(FsyncWord::Always),
+            FsyncPolicy::IntervalMs(interval_ms) => FsyncRepr::Interval { interval_ms },
+        }
+    }
+}
+
+/// Where and how a table persists itself (write-ahead log plus periodic snapshots).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct PersistenceConfig {
+    /// Directory holding `wal/`, `snapshots/` and a `LOCK` file; none = memory only.
+    pub dir: Option<std::path::PathBuf>,
+    /// A log segment is closed once the next record would take it past this size
+    /// [inferred: 64 MiB — ~350,000 default-size rows; deletion works a segment at a time].
+    pub segment_bytes: u64,
+    /// Durability of acknowledged records [inferred: every 100 ms, as a database's group
+    /// commit would].
+    pub fsync: FsyncPolicy,
+    /// Seconds between background snapshots, 0 = only on close or when asked [inferred: 30].
+    /// It bounds how far the sample counter can lag after a crash and how much log is kept.
+    pub snapshot_interval_s: f64,
+}
+
+impl Default for PersistenceConfig {
+    fn default() -> Self {
+        PersistenceConfig { dir: None, segment_bytes: 64 << 20, fsync: FsyncPolicy::IntervalMs(100), snapshot_interval_s: 30.0 }
+    }
+}
+
+impl PersistenceConfig {
+    pub fn validate(&self) -> Result<(), ReplayError> {
+        let bad = |m: String| Err(ReplayError::InvalidConfig(m));
+        if self.segment_bytes < 4096 {
+            return bad(format!("persistence.segment_bytes must be ≥ 4096, got {}", self.segment_bytes));
+        }
+        if self.fsync == FsyncPolicy::IntervalMs(0) {
+            return bad("persistence.fsync interval_ms must be ≥ 1 (use `always` to sync every record)".into());
+        }
+        if !(self.snapshot_interval_s.is_finite() && self.snapshot_interval_s >= 0.0) {
+            return bad(format!("persistence.snapshot_interval_s must be finite and ≥ 0, got {}", self.snapshot_interval_s));
+        }
+        Ok(())
+    }
+}

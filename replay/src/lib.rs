@@ -10,12 +10,20 @@
 //! Anchored on DeepMind Reverb (tables, selectors, a rate limiter), with exactly-once inserts
 //! on (actor id, sequence). This crate never links libtorch.
 
+pub mod bench;
 pub mod config;
 pub mod error;
+pub mod grpc;
+pub mod metrics;
 pub mod rate_limiter;
+pub mod server;
+pub mod shm;
+mod snapshot;
 pub mod sum_tree;
 pub mod table;
+mod wal;
 
-pub use config::{RateLimiterConfig, SamplerConfig, TableConfig};
+pub use config::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, SamplerConfig, TableConfig};
 pub use error::ReplayError;
-pub use table::{ActorStats, Table};
+pub use table::{ActorStats, RecoveryReport, SnapshotInfo, Table};
+pub use wal::StorageFault;

@@ -13,22 +13,47 @@
 //! O(rows × dims) copying or O(rows × log capacity) tree work. Blocked callers park on a
 //! condition variable that every insert, sample and close notifies. Memory is the raw payload
 //! plus 16 bytes a slot for the sum tree and ~30 bytes of per-row metadata.
+//!
+//! Persistence ([`Table::open`]): inserts and priority updates append a record to the
+//! write-ahead log (`wal.rs`) under the lock, before they change anything, so log order is
+//! apply order and an acknowledged change is in the log. A background thread copies the
+//! metadata under the lock (O(capacity) memcpy, a few ms at 1M rows) and writes the snapshot
+//! (`snapshot.rs`) without it; another fsyncs the log on `FsyncPolicy::IntervalMs`.
+//!
+//! ```text
+//!   open:  newest usable snapshot ──► replay log: LSN ≤ snapshot: row data only
+//!                                                 LSN > snapshot: inserts, de-dup marks,
+//!                                                                 priorities, counters
+//!          stop at the first torn/corrupt record, move what follows to wal/corrupt/
+//! ```
 
 use std::collections::HashMap;
-use std::sync::{Condvar, Mutex, MutexGuard};
-use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use mapless_proto::v1::{ActorInfo, InsertAck, ProtocolVersion, RateLimiterInfo, SampledBatch, ServerInfoResponse, TransitionBatch};
+use prost::Message;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64Mcg;
+use serde::{Deserialize, Serialize};
 
-use crate::config::{SamplerConfig, TableConfig};
+use crate::config::{FsyncPolicy, PersistenceConfig, SamplerConfig, TableConfig};
 use crate::error::ReplayError;
 use crate::rate_limiter::RateLimiter;
+use crate::snapshot::{SnapshotData, SnapshotMeta, SnapshotStore};
 use crate::sum_tree::SumTree;
+use crate::wal::{self, StorageFault, Wal, WalSync};
+
+/// Snapshots kept on disk. The log is kept back to the oldest, so a damaged newest snapshot
+/// falls back to the previous one without losing anything.
+const SNAPSHOTS_KEPT: usize = 2;
 
 /// Per-actor bookkeeping: de-duplication and what server info reports.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ActorStats {
     /// Highest sequence stored; batches at or below it are duplicates.
     pub last_sequence: u64,
@@ -95,17 +120,98 @@ struct State {
     insert_rate: RateMeter,
     sample_rate: RateMeter,
     closed: bool,
+    /// The write-ahead log, when the table persists itself.
+    wal: Option<Wal>,
+}
+
+impl State {
+    /// Copies row `r` of `batch` into `slot`'s columns.
+    fn write_row(&mut self, slot: usize, batch: &TransitionBatch, r: usize, d: usize, a: usize) {
+        self.obs[slot * d..(slot + 1) * d].copy_from_slice(&batch.obs[r * d..(r + 1) * d]);
+        self.next_obs[slot * d..(slot + 1) * d].copy_from_slice(&batch.next_obs[r * d..(r + 1) * d]);
+        self.action[slot * a..(slot + 1) * a].copy_from_slice(&batch.action[r * a..(r + 1) * a]);
+        self.reward[slot] = batch.reward[r];
+        self.terminal[slot] = batch.terminal[r];
+        self.truncated[slot] = batch.truncated[r];
+        self.episode_id[slot] = batch.episode_id[r];
+        self.step[slot] = batch.step[r];
+        self.policy_version[slot] = batch.policy_version[r];
+    }
+
+    /// Stores a validated batch's first `rows` rows under keys next_key.., evicting the oldest
+    /// rows (FIFO); new rows are live with the largest weight seen.
+    fn store_rows(&mut self, batch: &TransitionBatch, rows: usize, cfg: &TableConfig) {
+        let cap = cfg.capacity as u64;
+        for r in 0..rows {
+            let key = self.next_key;
+            let slot = (key % cap) as usize;
+            if self.live[slot] {
+                self.size -= 1; // FIFO eviction of the oldest row
+            }
+            self.write_row(slot, batch, r, cfg.obs_dim, cfg.act_dim);
+            self.key[slot] = key;
+            self.times_sampled[slot] = 0;
+            self.live[slot] = true;
+            self.tree.set(slot, self.max_weight);
+            self.next_key += 1;
+            self.size += 1;
+        }
+        self.limiter.inserted(rows as u64);
+    }
+
+    /// Updates the sending actor's de-duplication mark and statistics for a stored batch.
+    fn note_insert(&mut self, batch: &TransitionBatch, rows: usize, unix_ms: u64) {
+        let newest_version = batch.policy_version[..rows].iter().copied().max().unwrap_or(0);
+        let actor = self.actors.entry(batch.actor_id.clone()).or_default();
+        actor.last_sequence = batch.sequence;
+        actor.batches += 1;
+        actor.rows += rows as u64;
+        actor.last_policy_version = actor.last_policy_version.max(newest_version);
+        actor.last_insert_unix_ms = unix_ms;
+    }
+
+    /// The ack for a batch at or below its actor's last stored sequence (counted), if it is one.
+    fn duplicate_ack(&mut self, batch: &TransitionBatch) -> Option<InsertAck> {
+        let size = self.size;
+        let a = self.actors.get_mut(&batch.actor_id)?;
+        if batch.sequence > a.last_sequence {
+            return None;
+        }
+        a.duplicate_batches += 1;
+        Some(InsertAck { actor_id: batch.actor_id.clone(), sequence: batch.sequence, accepted_rows: 0, duplicate: true, table_size: size })
+    }
+
+    /// Is `key` stored now?
+    fn holds(&self, key: u64, cap: u64) -> bool {
+        let slot = (key % cap) as usize;
+        key < self.next_key && self.live[slot] && self.key[slot] == key
+    }
+
+    /// Sets the priorities of keys still stored (weight (p + ε)^α); returns how many.
+    fn apply_priorities(&mut self, pairs: &[(u64, f64)], alpha: f64, epsilon: f64, cap: u64) -> usize {
+        let mut updated = 0;
+        for &(k, p) in pairs {
+            if self.holds(k, cap) {
+                let w = (p + epsilon).powf(alpha);
+                self.tree.set((k % cap) as usize, w);
+                self.max_weight = self.max_weight.max(w);
+                updated += 1;
+            }
+        }
+        updated
+    }
 }
 
 /// One replay table. Share it with `Arc`; every method takes `&self`.
 pub struct Table {
     cfg: TableConfig,
-    state: Mutex<State>,
+    state: Arc<Mutex<State>>,
     changed: Condvar,
     started_unix_ms: u64,
+    persist: Option<Persist>,
 }
 
-fn unix_ms() -> u64 {
+pub(crate) fn unix_ms() -> u64 {
     SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
 }
 
@@ -137,8 +243,246 @@ impl Table {
             insert_rate: RateMeter::new(),
             sample_rate: RateMeter::new(),
             closed: false,
+            wal: None,
         };
-        Ok(Table { cfg, state: Mutex::new(state), changed: Condvar::new(), started_unix_ms: unix_ms() })
+        Ok(Table { cfg, state: Arc::new(Mutex::new(state)), changed: Condvar::new(), started_unix_ms: unix_ms(), persist: None })
+    }
+
+    /// A table that persists itself in `persistence.dir` (memory only when that is `None`):
+    /// restores what the directory holds, then logs every insert and priority update and
+    /// snapshots in the background. Every batch acknowledged before a crash comes back exactly
+    /// once; a torn or corrupt log is cut at the first bad record, which the report names
+    /// (everything before it is restored). Fails when another table holds the directory, or
+    /// when the directory was written by a table of another capacity or dims.
+    pub fn open(cfg: TableConfig, persistence: PersistenceConfig, seed: u64) -> Result<(Table, RecoveryReport), ReplayError> {
+        persistence.validate()?;
+        let mut table = Table::new(cfg, seed)?;
+        let Some(dir) = persistence.dir.clone() else {
+            return Ok((table, RecoveryReport::default()));
+        };
+        let wal_dir = dir.join("wal");
+        std::fs::create_dir_all(&wal_dir).map_err(|e| ReplayError::Storage { path: wal_dir.clone(), problem: format!("create: {e}") })?;
+        let lock_file = crate::snapshot::lock_dir(&dir)?;
+        let store = SnapshotStore::open(dir.join("snapshots"), SNAPSHOTS_KEPT)?;
+        let (wal, report) = table.recover(&store, &wal_dir, &persistence)?;
+        let sync = wal.sync_handle();
+        table.lock().wal = Some(wal);
+        let shared = Arc::new(PersistShared {
+            name: table.cfg.name.clone(),
+            capacity: table.cfg.capacity,
+            obs_dim: table.cfg.obs_dim,
+            act_dim: table.cfg.act_dim,
+            sampler: table.cfg.sampler.clone(),
+            state: Arc::clone(&table.state),
+            store,
+            sync,
+            wal_dir,
+            scratch: Mutex::new(SnapshotScratch::default()),
+            stop: Mutex::new(false),
+            stop_cv: Condvar::new(),
+        });
+        let threads = match PersistShared::spawn(&shared, &persistence) {
+            Ok(t) => t,
+            Err((e, started)) => {
+                *lock_plain(&shared.stop) = true;
+                shared.stop_cv.notify_all();
+                started.into_iter().for_each(|h| drop(h.join()));
+                return Err(e);
+            }
+        };
+        table.persist = Some(Persist { shared, threads: Mutex::new(threads), shut: AtomicBool::new(false), _lock_file: lock_file });
+        Ok((table, report))
+    }
+
+    /// Rebuilds the (empty) state from the newest usable snapshot and the log; returns the log
+    /// reopened for appending after the last valid record.
+    fn recover(&self, store: &SnapshotStore, wal_dir: &Path, p: &PersistenceConfig) -> Result<(Wal, RecoveryReport), ReplayError> {
+        let t0 = Instant::now();
+        let cfg = &self.cfg;
+        let (cap, d, a) = (cfg.capacity, cfg.obs_dim, cfg.act_dim);
+        let mut report = RecoveryReport::default();
+        let mut scan = wal::scan(wal_dir)?;
+        let (log_start, log_end) = (scan.start_lsn(), scan.end_lsn());
+
+        // The newest snapshot that checks out and that the log can continue: not past the
+        // log's end (records it covers were lost) and not before a gap in the log.
+        let mut base: Option<(PathBuf, SnapshotData)> = None;
+        for (lsn, path) in store.list()?.into_iter().rev() {
+            let unusable = |reason: String| StorageFault { path: path.clone(), offset: 0, reason };
+            if let Some(end) = log_end.filter(|&end| lsn > end) {
+                report.skipped_snapshots.push(unusable(format!("covers the log up to LSN {lsn} but its valid records end at {end}")));
+                store.set_aside(&path, "ahead")?;
+                continue;
+            }
+            if let Some(start) = log_start.filter(|&start| start > lsn + 1) {
+                report.skipped_snapshots.push(unusable(format!("the log now starts at LSN {start}, records {} onwards are gone", lsn + 1)));
+                continue;
+            }
+            match SnapshotStore::load(&path) {
+                Err(reason) => {
+                    report.skipped_snapshots.push(unusable(format!("corrupt: {reason}")));
+                    store.set_aside(&path, "corrupt")?;
+                }
+                Ok(snap) => {
+                    let m = &snap.meta;
+                    if (m.capacity, m.obs_dim, m.act_dim) != (cap as u64, d as u64, a as u64) {
+                        return Err(ReplayError::InvalidConfig(format!(
+                            "{} was written by a table of capacity {}, obs_dim {}, act_dim {}; this one has {cap}, {d}, {a}. Use the same shape or move the directory away",
+                            path.display(), m.capacity, m.obs_dim, m.act_dim
+                        )));
+                    }
+                    base = Some((path, snap));
+                    break;
+                }
+            }
+        }
+        for f in &report.skipped_snapshots {
+            tracing::warn!(table = %cfg.name, file = %f.path.display(), reason = %f.reason, "snapshot skipped");
+        }
+
+        let mut st = self.lock();
+        let s = &mut *st;
+        let mut snap_lsn = 0;
+        let mut samples = 0;
+        let snapshot_path = base.as_ref().map(|(p, _)| p.clone());
+        if let Some((path, snap)) = base {
+            let m = snap.meta;
+            let same_sampler = m.sampler == cfg.sampler;
+            if !same_sampler {
+                report.warnings.push(format!("sampler changed since {} was written: stored priorities reset to 1", path.display()));
+            }
+            s.max_weight = if same_sampler { m.max_weight } else { 1.0 };
+            for slot in 0..cap {
+                s.live[slot] = snap.live[slot];
+                s.times_sampled[slot] = snap.times_sampled[slot];
+                if snap.live[slot] {
+                    s.tree.set(slot, if same_sampler { snap.weights[slot] } else { 1.0 });
+                }
+            }
+            s.size = s.live.iter().filter(|&&l| l).count() as u64;
+            s.next_key = m.next_key;
+            s.actors = m.actors.into_iter().collect();
+            samples = m.samples;
+            snap_lsn = m.lsn;
+            report.snapshot = Some(path);
+            report.snapshot_lsn = m.lsn;
+        } else if let Some(start) = log_start.filter(|&start| start > 1) {
+            report.warnings.push(format!(
+                "no usable snapshot and the log starts at LSN {start}: de-duplication marks and counters from before it are lost"
+            ));
+        }
+
+        let mut filled = vec![false; cap];
+        let mut expected_key: Option<u64> = None;
+        let mut after_snapshot = 0u64;
+        let mut inserts_applied = 0u64;
+        let mismatch = |path: Option<&PathBuf>, what: String| ReplayError::Storage {
+            path: path.cloned().unwrap_or_else(|| wal_dir.to_path_buf()),
+            problem: format!("snapshot and log disagree: {what}; move the snapshot aside to recover from the log alone"),
+        };
+        let replayed = wal::replay(&mut scan, |rec| match rec.kind {
+            wal::KIND_INSERT => {
+                let (first_key, unix_ms, bytes) = wal::split_insert_payload(rec.payload).map_err(Ok)?;
+                let batch = TransitionBatch::decode(bytes).map_err(|e| Ok(format!("corrupt: logged batch does not decode: {e}")))?;
+                if (batch.obs_dim as usize, batch.act_dim as usize) != (d, a) {
+                    return Err(Err(ReplayError::InvalidConfig(format!(
+                        "the log in {} holds rows of obs_dim {}, act_dim {}; this table has {d}, {a}. Use the same dims or move the directory away",
+                        wal_dir.display(), batch.obs_dim, batch.act_dim
+                    ))));
+                }
+                let rows = batch.validate(d, a, usize::MAX).map_err(|e| Ok(format!("corrupt: logged batch is invalid: {e}")))?;
+                let key_end = first_key.checked_add(rows as u64).ok_or_else(|| Ok(format!("corrupt: first key {first_key} overflows")))?;
+                if let Some(k) = expected_key.filter(|&k| k != first_key) {
+                    return Err(Ok(format!("corrupt: rows start at key {first_key}, {k} expected")));
+                }
+                expected_key = Some(key_end);
+                if rec.lsn <= snap_lsn {
+                    // The snapshot already counts these rows; only their data lives here.
+                    if key_end > s.next_key {
+                        return Err(Err(mismatch(snapshot_path.as_ref(), format!("LSN {} holds keys up to {key_end}, the snapshot's next key is {}", rec.lsn, s.next_key))));
+                    }
+                    for r in 0..rows {
+                        let key = first_key + r as u64;
+                        let slot = (key % cap as u64) as usize;
+                        s.write_row(slot, &batch, r, d, a);
+                        s.key[slot] = key;
+                        filled[slot] = true;
+                    }
+                } else {
+                    if s.next_key != first_key {
+                        if snapshot_path.is_none() && inserts_applied == 0 {
+                            s.next_key = first_key; // the log's history before its start is gone (warned above)
+                        } else {
+                            return Err(Err(mismatch(snapshot_path.as_ref(), format!("LSN {} inserts at key {first_key}, the table is at {}", rec.lsn, s.next_key))));
+                        }
+                    }
+                    for r in 0..rows {
+                        filled[((first_key + r as u64) % cap as u64) as usize] = true;
+                    }
+                    s.store_rows(&batch, rows, cfg);
+                    s.note_insert(&batch, rows, unix_ms);
+                    after_snapshot += 1;
+                    inserts_applied += 1;
+                }
+                Ok(Some(key_end))
+            }
+            wal::KIND_PRIORITIES => {
+                let pairs = wal::parse_priorities_payload(rec.payload).map_err(Ok)?;
+                if rec.lsn > snap_lsn {
+                    if let SamplerConfig::Prioritized { alpha, epsilon, .. } = cfg.sampler {
+                        s.apply_priorities(&pairs, alpha, epsilon, cap as u64);
+                    }
+                    after_snapshot += 1;
+                }
+                Ok(None)
+            }
+            kind => Err(Ok(format!("corrupt: unknown record kind {kind}"))),
+        })?;
+
+        // A live row whose data the log no longer holds cannot be served: drop it, loudly.
+        let window = s.next_key.saturating_sub(cap as u64);
+        let mut lost = 0u64;
+        for (slot, &has_data) in filled.iter().enumerate() {
+            if s.live[slot] && !(has_data && s.key[slot] >= window && s.key[slot] < s.next_key) {
+                s.live[slot] = false;
+                s.tree.set(slot, 0.0);
+                lost += 1;
+            }
+        }
+        s.size = s.live.iter().filter(|&&l| l).count() as u64;
+        s.limiter.restore(s.next_key, samples);
+
+        let end = scan.end_lsn().unwrap_or(0).max(snap_lsn);
+        let wal = Wal::reopen(&scan, p.fsync, p.segment_bytes, end + 1, s.next_key)?;
+        report.segments = scan.segments.iter().filter(|g| g.valid_len > 0).count();
+        report.records_replayed = replayed;
+        report.records_after_snapshot = after_snapshot;
+        report.rows = s.size;
+        report.next_key = s.next_key;
+        report.last_lsn = wal.last_lsn();
+        report.fault = scan.fault.clone();
+        report.rows_lost = lost;
+        if lost > 0 {
+            report.warnings.push(format!("{lost} rows the snapshot lists as stored are missing from the log and were dropped"));
+        }
+        if let Some(f) = &report.fault {
+            tracing::warn!(table = %cfg.name, file = %f.path.display(), offset = f.offset, reason = %f.reason, records_restored = replayed, "log cut at a torn or corrupt record; everything before it restored, the rest moved to wal/corrupt/");
+        }
+        for w in &report.warnings {
+            tracing::warn!(table = %cfg.name, "{w}");
+        }
+        report.elapsed = t0.elapsed();
+        tracing::info!(table = %cfg.name, rows = report.rows, records = replayed, after_snapshot, snapshot_lsn = snap_lsn, ms = report.elapsed.as_millis() as u64, "table restored");
+        Ok((wal, report))
+    }
+
+    /// Writes a snapshot now (waiting for one in progress); `None` for a memory-only table or
+    /// when nothing changed since the last one. Inserts and samples wait only for the copy.
+    pub fn snapshot(&self) -> Result<Option<SnapshotInfo>, ReplayError> {
+        match &self.persist {
+            Some(p) => p.shared.snapshot(),
+            None => Ok(None),
+        }
     }
 
     pub fn config(&self) -> &TableConfig {
@@ -159,7 +503,10 @@ impl Table {
     /// Validates, de-duplicates on (actor_id, sequence), waits for the rate limiter until
     /// `deadline` (None: wait indefinitely), and stores the batch. A duplicate (sequence at or
     /// below the actor's last stored one) is acknowledged with `duplicate = true` and changes
-    /// nothing. A rejected batch changes nothing and is counted against its actor.
+    /// nothing. A rejected batch changes nothing and is counted against its actor. On a
+    /// persistent table the batch is in the log (written to the OS; fsynced too under
+    /// `FsyncPolicy::Always`) before it is stored and acknowledged; if the log cannot be
+    /// written, nothing is stored and the error is `Storage`.
     pub fn insert(&self, batch: &TransitionBatch, deadline: Option<Instant>) -> Result<InsertAck, ReplayError> {
         let rows = match batch.validate(self.cfg.obs_dim, self.cfg.act_dim, self.cfg.max_batch_rows) {
             Ok(r) => r,
@@ -168,49 +515,25 @@ impl Table {
                 return Err(e.into());
             }
         };
+        // Encoded outside the lock; the record is written under it, before anything changes.
+        let encoded = self.persist.as_ref().map(|_| batch.encode_to_vec());
         let mut st = self.lock();
-        if let Some(a) = st.actors.get_mut(&batch.actor_id) {
-            if batch.sequence <= a.last_sequence {
-                a.duplicate_batches += 1;
-                return Ok(InsertAck { actor_id: batch.actor_id.clone(), sequence: batch.sequence, accepted_rows: 0, duplicate: true, table_size: st.size });
-            }
+        if let Some(ack) = st.duplicate_ack(batch) {
+            return Ok(ack);
         }
         st = self.wait(st, deadline, "insert", |s| s.limiter.can_insert())?;
-        let d = self.cfg.obs_dim;
-        let a = self.cfg.act_dim;
-        let cap = self.cfg.capacity as u64;
-        let s = &mut *st;
-        for r in 0..rows {
-            let key = s.next_key;
-            let slot = (key % cap) as usize;
-            if s.live[slot] {
-                s.size -= 1; // FIFO eviction of the oldest row
-            }
-            s.obs[slot * d..(slot + 1) * d].copy_from_slice(&batch.obs[r * d..(r + 1) * d]);
-            s.next_obs[slot * d..(slot + 1) * d].copy_from_slice(&batch.next_obs[r * d..(r + 1) * d]);
-            s.action[slot * a..(slot + 1) * a].copy_from_slice(&batch.action[r * a..(r + 1) * a]);
-            s.reward[slot] = batch.reward[r];
-            s.terminal[slot] = batch.terminal[r];
-            s.truncated[slot] = batch.truncated[r];
-            s.episode_id[slot] = batch.episode_id[r];
-            s.step[slot] = batch.step[r];
-            s.policy_version[slot] = batch.policy_version[r];
-            s.key[slot] = key;
-            s.times_sampled[slot] = 0;
-            s.live[slot] = true;
-            s.tree.set(slot, s.max_weight);
-            s.next_key += 1;
-            s.size += 1;
+        // Another caller may have stored the same batch while this one waited.
+        if let Some(ack) = st.duplicate_ack(batch) {
+            return Ok(ack);
         }
-        s.limiter.inserted(rows as u64);
+        let now_ms = unix_ms();
+        let s = &mut *st;
+        if let (Some(wal), Some(bytes)) = (s.wal.as_mut(), &encoded) {
+            wal.append_insert(s.next_key, rows as u64, now_ms, bytes)?;
+        }
+        s.store_rows(batch, rows, &self.cfg);
         s.insert_rate.add(Instant::now(), rows as u64);
-        let newest_version = batch.policy_version[..rows].iter().copied().max().unwrap_or(0);
-        let actor = s.actors.entry(batch.actor_id.clone()).or_default();
-        actor.last_sequence = batch.sequence;
-        actor.batches += 1;
-        actor.rows += rows as u64;
-        actor.last_policy_version = actor.last_policy_version.max(newest_version);
-        actor.last_insert_unix_ms = unix_ms();
+        s.note_insert(batch, rows, now_ms);
         let ack = InsertAck { actor_id: batch.actor_id.clone(), sequence: batch.sequence, accepted_rows: rows as u32, duplicate: false, table_size: s.size };
         drop(st);
         self.changed.notify_all();
@@ -307,7 +630,8 @@ impl Table {
     }
 
     /// Sets new priorities (e.g. |TD error|) for keys still stored; returns (updated,
-    /// unknown) counts. Keys evicted or removed since they were sampled are skipped.
+    /// unknown) counts. Keys evicted or removed since they were sampled are skipped. On a
+    /// persistent table the updates to stored keys are logged first, as for `insert`.
     pub fn update_priorities(&self, keys: &[u64], priorities: &[f64]) -> Result<(u32, u32), ReplayError> {
         if keys.len() != priorities.len() {
             return Err(ReplayError::BadRequest(format!("{} keys but {} priorities", keys.len(), priorities.len())));
@@ -322,19 +646,12 @@ impl Table {
         let cap = self.cfg.capacity as u64;
         let mut st = self.lock();
         let s = &mut *st;
-        let (mut updated, mut unknown) = (0u32, 0u32);
-        for (&k, &p) in keys.iter().zip(priorities) {
-            let slot = (k % cap) as usize;
-            if k < s.next_key && s.live[slot] && s.key[slot] == k {
-                let w = (p + epsilon).powf(alpha);
-                s.tree.set(slot, w);
-                s.max_weight = s.max_weight.max(w);
-                updated += 1;
-            } else {
-                unknown += 1;
-            }
+        let known: Vec<(u64, f64)> = keys.iter().zip(priorities).filter(|(k, _)| s.holds(**k, cap)).map(|(&k, &p)| (k, p)).collect();
+        if let Some(wal) = s.wal.as_mut().filter(|_| !known.is_empty()) {
+            wal.append_priorities(&known)?;
         }
-        Ok((updated, unknown))
+        let updated = s.apply_priorities(&known, alpha, epsilon, cap);
+        Ok((updated as u32, (keys.len() - updated) as u32))
     }
 
     /// Waits on the condition variable until `ready` or the deadline; accounts blocked time.
@@ -373,10 +690,16 @@ impl Table {
         }
     }
 
-    /// Wakes every blocked caller with `Closed`; later calls fail the same way.
+    /// Wakes every blocked caller with `Closed`; later calls fail the same way. A persistent
+    /// table then stops its background threads, writes a final snapshot and fsyncs its log
+    /// (problems are logged; the log alone still restores everything). Dropping a table does
+    /// the same.
     pub fn close(&self) {
         self.lock().closed = true;
         self.changed.notify_all();
+        if let Some(p) = &self.persist {
+            p.shutdown(&self.cfg.name);
+        }
     }
 
     /// Per-actor statistics (clone).
@@ -411,6 +734,8 @@ impl Table {
                 last_sequence: a.last_sequence,
                 last_policy_version: a.last_policy_version,
                 last_insert_unix_ms: a.last_insert_unix_ms,
+                // Rejections and policy-version lag are filled by the gRPC layer (grpc::server_info).
+                ..ActorInfo::default()
             })
             .collect();
         actors.sort_by(|a, b| a.actor_id.cmp(&b.actor_id));
@@ -452,5 +777,266 @@ impl Table {
             + (st.episode_id.len() + st.policy_version.len() + st.key.len()) * 8
             + (st.step.len() + st.times_sampled.len()) * 4
             + st.tree.memory_bytes()
+    }
+}
+
+impl Drop for Table {
+    fn drop(&mut self) {
+        if self.persist.is_some() {
+            self.close();
+        }
+    }
+}
+
+/// What [`Table::open`] found on disk and did about it.
+#[derive(Clone, Debug, Default)]
+pub struct RecoveryReport {
+    /// The snapshot recovery started from; `None` means the log alone (or an empty directory).
+    pub snapshot: Option<PathBuf>,
+    /// The last log record that snapshot covers.
+    pub snapshot_lsn: u64,
+    /// Snapshots passed over, newest first, and why. Corrupt ones, and ones covering records the
+    /// log no longer holds, are renamed (`*.corrupt.<ms>`, `*.ahead.<ms>`) and never read again.
+    pub skipped_snapshots: Vec<StorageFault>,
+    /// Log segments read.
+    pub segments: usize,
+    /// Valid log records read (before and after the snapshot).
+    pub records_replayed: u64,
+    /// Of those, records newer than the snapshot, re-applied in full.
+    pub records_after_snapshot: u64,
+    /// Rows stored after recovery.
+    pub rows: u64,
+    /// Rows ever inserted (the next key).
+    pub next_key: u64,
+    /// LSN of the last valid record; new records continue from it.
+    pub last_lsn: u64,
+    /// The first torn or corrupt spot in the log: the file, the byte offset and why. Nothing
+    /// from it on was restored; those bytes (and any later segments) are in `wal/corrupt/`.
+    pub fault: Option<StorageFault>,
+    /// Rows a snapshot listed as stored whose data the log no longer held (dropped).
+    pub rows_lost: u64,
+    /// Anything else a person should know (e.g. the sampler changed).
+    pub warnings: Vec<String>,
+    pub elapsed: Duration,
+}
+
+/// One snapshot written by [`Table::snapshot`] or the background thread.
+#[derive(Clone, Debug)]
+pub struct SnapshotInfo {
+    pub path: PathBuf,
+    /// The last log record it covers.
+    pub lsn: u64,
+    pub bytes: u64,
+    pub rows: u64,
+    /// How long the table's lock was held to copy the metadata: the longest any insert or
+    /// sample waited for the snapshot.
+    pub copy: Duration,
+    /// Log fsync, file write, fsync and rename (no lock held).
+    pub write: Duration,
+    /// Log segments deleted because no recovery can need them any more.
+    pub segments_deleted: usize,
+}
+
+/// A persistent table's background machinery.
+struct Persist {
+    shared: Arc<PersistShared>,
+    threads: Mutex<Vec<JoinHandle<()>>>,
+    shut: AtomicBool,
+    /// Held (flock) while the table is open: two writers would interleave their logs.
+    _lock_file: std::fs::File,
+}
+
+/// What the snapshot and flush threads share with the table.
+struct PersistShared {
+    name: String,
+    capacity: usize,
+    obs_dim: usize,
+    act_dim: usize,
+    sampler: SamplerConfig,
+    state: Arc<Mutex<State>>,
+    store: SnapshotStore,
+    sync: Arc<WalSync>,
+    wal_dir: PathBuf,
+    /// Also serialises snapshot writers.
+    scratch: Mutex<SnapshotScratch>,
+    stop: Mutex<bool>,
+    stop_cv: Condvar,
+}
+
+/// The last snapshot's (LSN, samples) and its per-slot buffers, kept so that the copy under
+/// the table lock writes into memory already paged in (at 1M slots the first touch of the
+/// 13 MB costs more than the copy itself).
+#[derive(Default)]
+struct SnapshotScratch {
+    mark: Option<(u64, u64)>,
+    weights: Vec<f64>,
+    live: Vec<bool>,
+    times_sampled: Vec<u32>,
+}
+
+fn lock_plain<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl PersistShared {
+    /// Starts the flush and snapshot threads; on failure, the error and the threads started.
+    #[allow(clippy::type_complexity)]
+    fn spawn(shared: &Arc<PersistShared>, p: &PersistenceConfig) -> Result<Vec<JoinHandle<()>>, (ReplayError, Vec<JoinHandle<()>>)> {
+        let mut threads = Vec::new();
+        let spawn_err = |e: std::io::Error| ReplayError::Storage { path: shared.wal_dir.clone(), problem: format!("start background thread: {e}") };
+        if let FsyncPolicy::IntervalMs(ms) = p.fsync {
+            let sh = Arc::clone(shared);
+            let every = Duration::from_millis(ms);
+            let started = std::thread::Builder::new()
+                .name(format!("wal-flush-{}", shared.name))
+                .spawn(move || {
+                    while !sh.wait_stop(every) {
+                        if let Err(e) = sh.sync.sync_if_dirty() {
+                            tracing::error!(table = %sh.name, error = %e, "log fsync failed; further inserts are refused");
+                        }
+                    }
+                });
+            match started {
+                Ok(h) => threads.push(h),
+                Err(e) => return Err((spawn_err(e), threads)),
+            }
+        }
+        if p.snapshot_interval_s > 0.0 {
+            let sh = Arc::clone(shared);
+            let every = Duration::from_secs_f64(p.snapshot_interval_s);
+            let started = std::thread::Builder::new()
+                .name(format!("snapshot-{}", shared.name))
+                .spawn(move || {
+                    while !sh.wait_stop(every) {
+                        match sh.snapshot_if_changed() {
+                            Ok(Some(i)) => tracing::debug!(table = %sh.name, lsn = i.lsn, copy_us = i.copy.as_micros() as u64, write_ms = i.write.as_millis() as u64, segments_deleted = i.segments_deleted, "snapshot written"),
+                            Ok(None) => {}
+                            Err(e) => tracing::warn!(table = %sh.name, error = %e, "snapshot failed; the log still holds everything"),
+                        }
+                    }
+                });
+            match started {
+                Ok(h) => threads.push(h),
+                Err(e) => return Err((spawn_err(e), threads)),
+            }
+        }
+        Ok(threads)
+    }
+
+    /// Sleeps up to `d`; true when the table is shutting down.
+    fn wait_stop(&self, d: Duration) -> bool {
+        let stop = lock_plain(&self.stop);
+        if *stop {
+            return true;
+        }
+        *self.stop_cv.wait_timeout(stop, d).unwrap_or_else(|p| p.into_inner()).0
+    }
+
+    fn snapshot(&self) -> Result<Option<SnapshotInfo>, ReplayError> {
+        self.write_snapshot(true)
+    }
+
+    fn snapshot_if_changed(&self) -> Result<Option<SnapshotInfo>, ReplayError> {
+        self.write_snapshot(false)
+    }
+
+    /// Copies the metadata under the table lock, then (lock released) fsyncs the log up to
+    /// the copy's LSN, writes the snapshot, prunes old ones and deletes log segments that no
+    /// kept snapshot needs and whose rows are all evicted.
+    fn write_snapshot(&self, force: bool) -> Result<Option<SnapshotInfo>, ReplayError> {
+        let mut scratch = lock_plain(&self.scratch);
+        let cap = self.capacity;
+        scratch.weights.resize(cap, 0.0);
+        scratch.live.resize(cap, false);
+        scratch.times_sampled.resize(cap, 0);
+        let st = lock_plain(&self.state);
+        let copy_start = Instant::now();
+        let Some(wal) = st.wal.as_ref() else { return Ok(None) };
+        let lsn = wal.last_lsn();
+        let (inserts, samples) = st.limiter.counts();
+        if !force && scratch.mark == Some((lsn, samples)) {
+            return Ok(None);
+        }
+        for (slot, w) in scratch.weights.iter_mut().enumerate() {
+            *w = st.tree.get(slot);
+        }
+        scratch.live.copy_from_slice(&st.live);
+        scratch.times_sampled.copy_from_slice(&st.times_sampled);
+        let snap = SnapshotData {
+            meta: SnapshotMeta {
+                table: self.name.clone(),
+                lsn,
+                next_key: st.next_key,
+                capacity: cap as u64,
+                obs_dim: self.obs_dim as u64,
+                act_dim: self.act_dim as u64,
+                sampler: self.sampler.clone(),
+                max_weight: st.max_weight,
+                inserts,
+                samples,
+                size: st.size,
+                created_unix_ms: unix_ms(),
+                actors: st.actors.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
+            },
+            weights: std::mem::take(&mut scratch.weights),
+            live: std::mem::take(&mut scratch.live),
+            times_sampled: std::mem::take(&mut scratch.times_sampled),
+        };
+        drop(st);
+        let copy = copy_start.elapsed();
+        let write_start = Instant::now();
+        let written = self.persist_snapshot(&snap);
+        let rows = snap.meta.size;
+        (scratch.weights, scratch.live, scratch.times_sampled) = (snap.weights, snap.live, snap.times_sampled);
+        let (path, bytes, segments_deleted) = written?;
+        scratch.mark = Some((lsn, samples));
+        Ok(Some(SnapshotInfo { path, lsn, bytes, rows, copy, write: write_start.elapsed(), segments_deleted }))
+    }
+
+    /// The part of a snapshot done without the table lock: fsync the log up to the snapshot's
+    /// LSN, write the file, prune old snapshots, delete log segments no recovery can need.
+    /// Returns the path, its size and the number of segments deleted.
+    fn persist_snapshot(&self, snap: &SnapshotData) -> Result<(PathBuf, u64, usize), ReplayError> {
+        // Records the snapshot covers must be durable before it is, or a power loss could
+        // leave a snapshot ahead of its log.
+        self.sync.sync()?;
+        let (path, bytes) = self.store.write(snap)?;
+        let keep_from = self.store.prune()?.unwrap_or(0);
+        let doomed = {
+            let mut st = lock_plain(&self.state);
+            let evicted_below = st.next_key.saturating_sub(self.capacity as u64);
+            st.wal.as_mut().map(|w| w.take_deletable(keep_from, evicted_below)).unwrap_or_default()
+        };
+        let mut deleted = 0;
+        for p in &doomed {
+            match std::fs::remove_file(p) {
+                Ok(()) => deleted += 1,
+                Err(e) => tracing::warn!(table = %self.name, file = %p.display(), error = %e, "could not delete an obsolete log segment"),
+            }
+        }
+        if let Err(e) = if deleted > 0 { wal::sync_dir(&self.wal_dir) } else { Ok(()) } {
+            tracing::warn!(table = %self.name, error = %e, "fsync of the log directory failed");
+        }
+        Ok((path, bytes, deleted))
+    }
+}
+
+impl Persist {
+    /// Stops the threads, writes a final snapshot and fsyncs the log; once.
+    fn shutdown(&self, name: &str) {
+        if self.shut.swap(true, Ordering::SeqCst) {
+            return;
+        }
+        *lock_plain(&self.shared.stop) = true;
+        self.shared.stop_cv.notify_all();
+        for h in lock_plain(&self.threads).drain(..) {
+            let _ = h.join();
+        }
+        if let Err(e) = self.shared.snapshot_if_changed() {
+            tracing::warn!(table = %name, error = %e, "final snapshot failed; the log still holds everything");
+        }
+        if let Err(e) = self.shared.sync.sync() {
+            tracing::error!(table = %name, error = %e, "final log fsync failed");
+        }
     }
 }

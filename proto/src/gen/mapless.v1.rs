@@ -335,6 +335,22 @@ pub struct ActorInfo {
     /// When this actor's last batch was inserted.
     #[prost(uint64, tag = "7")]
     pub last_insert_unix_ms: u64,
+    /// Batches refused since the server started and not inserted: a TransitionBatch invariant
+    /// broken (wrong dims, NaN, ...), a message that could not be decoded or was larger than
+    /// the server accepts, or a batch of another actor_id on this actor's Insert stream.
+    /// Refused batches leave the table untouched. Batches whose actor_id was itself unusable
+    /// are counted under the actor_id "<invalid actor id>".
+    #[prost(uint64, tag = "8")]
+    pub rejected_batches: u64,
+    /// Why the most recent refused batch was refused (the status message it got, at most 200
+    /// characters); "" when none was.
+    #[prost(string, tag = "9")]
+    pub last_rejection: ::prost::alloc::string::String,
+    /// How many policy versions this actor is behind: the newest policy_version seen from any
+    /// actor minus this actor's last_policy_version. 0 for the actors on the newest policy and
+    /// for actors that have not inserted anything yet.
+    #[prost(uint64, tag = "10")]
+    pub policy_version_lag: u64,
 }
 /// State of the replay server.
 #[derive(Clone, PartialEq, ::prost::Message)]

@@ -1,0 +1,189 @@
+//! Measurements behind `mapless bench replay`: ingest rate over gRPC with concurrent writers,
+//! minibatch rate and latency of the sample stream, and resident memory of a full table.
+//! Each function starts what it measures in-process on loopback and tears it down.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use mapless_proto::v1::replay_service_client::ReplayServiceClient;
+use mapless_proto::v1::{ProtocolVersion, SampleRequest, TransitionBatch};
+use mapless_proto::{MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+
+use crate::config::{RateLimiterConfig, TableConfig};
+use crate::error::ReplayError;
+use crate::table::Table;
+
+/// Rows per insert batch in the benchmarks (an actor's typical flush).
+pub const BATCH_ROWS: usize = 256;
+
+/// A table sized for `obs_dim`, no rate limiting (the benches measure transport and storage).
+pub fn bench_table(capacity: usize, obs_dim: usize) -> Result<Table, ReplayError> {
+    let cfg = TableConfig {
+        capacity,
+        obs_dim,
+        act_dim: 2,
+        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, error_buffer: 0.0 },
+        ..TableConfig::default()
+    };
+    Table::new(cfg, 1)
+}
+
+/// A batch of `rows` plausible transitions for `actor`.
+pub fn synthetic_batch(actor: &str, seq: u64, rows: usize, obs_dim: usize) -> TransitionBatch {
+    let mut b = TransitionBatchBuilder::with_capacity(obs_dim, 2, rows);
+    let obs: Vec<f32> = (0..obs_dim).map(|k| (k as f32 * 0.37).sin()).collect();
+    for r in 0..rows {
+        let t = Transition { obs: &obs, action: &[0.5, -0.25], reward: 0.3, next_obs: &obs, terminal: false, truncated: r == rows - 1, episode_id: seq, step: r as u32, policy_version: 1 };
+        b.push(t).expect("synthetic rows are valid");
+    }
+    b.finish(actor, seq)
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime")
+}
+
+async fn client(addr: std::net::SocketAddr) -> ReplayServiceClient<tonic::transport::Channel> {
+    ReplayServiceClient::connect(format!("http://{addr}"))
+        .await
+        .expect("connect to the in-process server")
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES)
+}
+
+/// Rows per second acknowledged over gRPC with `writers` concurrent Insert streams, each
+/// pipelining pre-encoded batches, for about `duration`.
+pub fn grpc_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration) -> f64 {
+    let rt = runtime();
+    rt.block_on(async move {
+        let table = Arc::new(bench_table(1_000_000, obs_dim).expect("valid table"));
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
+        let addr = listener.local_addr().expect("address");
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(crate::server::run(listener, Arc::clone(&table), async {
+            let _ = stop_rx.await;
+        }));
+        let acked = Arc::new(AtomicU64::new(0));
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut tasks = Vec::new();
+        for w in 0..writers {
+            let (acked, stop) = (Arc::clone(&acked), Arc::clone(&stop));
+            tasks.push(tokio::spawn(async move {
+                let mut c = client(addr).await;
+                let (tx, rx) = mpsc::channel::<TransitionBatch>(32);
+                let actor = format!("bench-{w}");
+                let template = synthetic_batch(&actor, 1, BATCH_ROWS, obs_dim);
+                let feeder = tokio::spawn(async move {
+                    for seq in 1.. {
+                        if stop.load(Ordering::Relaxed) {
+                            return;
+                        }
+                        let mut b = template.clone();
+                        b.sequence = seq;
+                        if tx.send(b).await.is_err() {
+                            return;
+                        }
+                    }
+                });
+                let mut acks = c.insert(ReceiverStream::new(rx)).await.expect("insert stream").into_inner();
+                while let Ok(Some(a)) = acks.message().await {
+                    acked.fetch_add(a.accepted_rows as u64, Ordering::Relaxed);
+                }
+                feeder.abort();
+            }));
+        }
+        // Measure after a short warm-up.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let (a0, t0) = (acked.load(Ordering::Relaxed), Instant::now());
+        tokio::time::sleep(duration).await;
+        let rate = (acked.load(Ordering::Relaxed) - a0) as f64 / t0.elapsed().as_secs_f64();
+        stop.store(true, Ordering::Relaxed);
+        let _ = stop_tx.send(());
+        for t in tasks {
+            let _ = tokio::time::timeout(Duration::from_secs(10), t).await;
+        }
+        let _ = tokio::time::timeout(Duration::from_secs(10), server).await;
+        table.close();
+        rate
+    })
+}
+
+/// Sample-stream figures: minibatches per second and the gaps between consecutive
+/// minibatches at the client (what a learner waits), p50 and p99.
+pub struct SampleFigures {
+    pub minibatches_per_s: f64,
+    pub p50_us: f64,
+    pub p99_us: f64,
+}
+
+/// Fills a table with `rows` rows, then reads minibatches of `batch` rows from one Sample
+/// stream with `prefetch` for about `duration`.
+pub fn grpc_sample(rows: usize, obs_dim: usize, batch: u32, prefetch: u32, duration: Duration) -> SampleFigures {
+    let rt = runtime();
+    rt.block_on(async move {
+        let table = Arc::new(bench_table(rows.max(1), obs_dim).expect("valid table"));
+        for (seq, start) in (0..rows).step_by(BATCH_ROWS).enumerate() {
+            let n = BATCH_ROWS.min(rows - start);
+            table.insert(&synthetic_batch("fill", seq as u64 + 1, n, obs_dim), None).expect("fill");
+        }
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
+        let addr = listener.local_addr().expect("address");
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(crate::server::run(listener, Arc::clone(&table), async {
+            let _ = stop_rx.await;
+        }));
+        let mut c = client(addr).await;
+        let req = SampleRequest { protocol_version: ProtocolVersion::V1 as i32, table: table.config().name.clone(), batch_size: batch, prefetch, timeout_ms: 5_000, max_batches: 0, importance_beta: 0.0 };
+        let mut stream = c.sample(req).await.expect("sample stream").into_inner();
+        // Warm-up.
+        let warm = Instant::now();
+        while warm.elapsed() < Duration::from_millis(300) {
+            stream.message().await.expect("minibatch").expect("stream open");
+        }
+        let mut gaps = Vec::new();
+        let start = Instant::now();
+        let mut last = start;
+        while start.elapsed() < duration {
+            stream.message().await.expect("minibatch").expect("stream open");
+            let now = Instant::now();
+            gaps.push(now.duration_since(last).as_secs_f64() * 1e6);
+            last = now;
+        }
+        let n = gaps.len();
+        let secs = start.elapsed().as_secs_f64();
+        drop(stream);
+        let _ = stop_tx.send(());
+        let _ = tokio::time::timeout(Duration::from_secs(10), server).await;
+        table.close();
+        gaps.sort_by(|a, b| a.total_cmp(b));
+        let pct = |p: f64| gaps[((n as f64 * p) as usize).min(n - 1)];
+        SampleFigures { minibatches_per_s: n as f64 / secs, p50_us: pct(0.50), p99_us: pct(0.99) }
+    })
+}
+
+/// Resident-memory growth of filling a table with `rows` rows, and the raw payload of those
+/// rows (obs + next_obs + action + reward + the two flags + episode id, step, policy version).
+pub fn memory(rows: usize, obs_dim: usize) -> (u64, u64) {
+    let before = resident_bytes();
+    let table = bench_table(rows, obs_dim).expect("valid table");
+    for (seq, start) in (0..rows).step_by(BATCH_ROWS).enumerate() {
+        let n = BATCH_ROWS.min(rows - start);
+        table.insert(&synthetic_batch("fill", seq as u64 + 1, n, obs_dim), None).expect("fill");
+    }
+    let after = resident_bytes();
+    let raw_row = (2 * obs_dim + 2 + 1) * 4 + 2 + 8 + 4 + 8;
+    drop(table);
+    (after.saturating_sub(before), (rows * raw_row) as u64)
+}
+
+/// This process's resident set size (Linux /proc), 0 where unavailable.
+pub fn resident_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/statm")
+        .ok()
+        .and_then(|s| s.split_whitespace().nth(1).and_then(|p| p.parse::<u64>().ok()))
+        .map(|pages| pages * 4096)
+        .unwrap_or(0)
+}

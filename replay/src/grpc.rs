@@ -1,0 +1,512 @@
+//! `ReplayService` over gRPC: the transport around one [`Table`]. Service logic stays in the
+//! table; this file maps streams to table calls and errors to statuses.
+//!
+//! ```text
+//!  Insert (bidi), one task per stream, one actor per stream:
+//!    inbound ──batch──► spawn_blocking(Table::insert, polled) ──ack──► [acks, depth 8] ──► client
+//!    (the next batch is read only after the previous one is acked: a rate-limited table stops
+//!     reading, and HTTP/2 flow control then blocks the client — the limiter is the one throttle)
+//!
+//!  Sample (server stream), one blocking producer per stream:
+//!    reserve slot in [minibatches, depth prefetch] ─► Table::sample (polled) ─► send ─► client
+//!    (a slot is reserved before drawing, so at most `prefetch` drawn minibatches wait unread)
+//! ```
+//!
+//! Threading: the table blocks on a std `Condvar` (rate limiter), so every table call that can
+//! wait runs on tokio's blocking pool, never on a runtime worker. Blocking calls wait in slices
+//! of [`POLL_INTERVAL`] and between slices check whether their peer went away or the server is
+//! stopping, so a vanished client releases its thread (and its actor's stream slot) within one
+//! slice instead of wedging until the limiter opens.
+
+use std::collections::HashSet;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use mapless_proto::v1::replay_service_server::ReplayService;
+use mapless_proto::v1::{
+    InsertAck, PriorityUpdate, PriorityUpdateResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse,
+    TransitionBatch,
+};
+use mapless_proto::{MAX_ACTOR_ID_BYTES, MAX_MESSAGE_BYTES, check_protocol_version};
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+use tracing::{Instrument, debug, info, info_span, warn};
+
+use crate::config::SamplerConfig;
+use crate::error::ReplayError;
+use crate::table::{ActorStats, Table};
+
+/// How long a blocked table call waits before checking whether its peer is still there.
+/// Bounds how long a vanished client keeps a thread and its actor's stream slot.
+pub const POLL_INTERVAL: Duration = Duration::from_millis(100);
+
+/// Acks buffered per Insert stream before the server stops reading (a client that does not
+/// read its acks is throttled like one the rate limiter blocks).
+pub const ACK_CHANNEL_DEPTH: usize = 8;
+
+/// Largest `SampleRequest.prefetch` honoured unless configured otherwise; larger values are
+/// clamped (replay.proto: "values above the server's maximum (16 by default) are clamped").
+pub const DEFAULT_MAX_PREFETCH: u32 = 16;
+
+/// Most keys one `PriorityUpdate` may carry: what fits in one message at 16 bytes a key
+/// (8 for the key, 8 for its priority).
+pub const MAX_PRIORITY_KEYS: usize = MAX_MESSAGE_BYTES / 16;
+
+/// The gRPC face of one table. A plain struct: wrap it in
+/// [`ReplayServiceServer`](mapless_proto::v1::replay_service_server::ReplayServiceServer)
+/// (with [`MAX_MESSAGE_BYTES`] limits), or let [`crate::server::serve`] do it.
+pub struct ReplayGrpc {
+    table: Arc<Table>,
+    /// actor_ids with an open Insert stream. Exactly-once needs one stream per actor at a time
+    /// (replay.proto, Insert): a second one is refused with ABORTED.
+    open_streams: Arc<Mutex<HashSet<String>>>,
+    max_prefetch: u32,
+    /// Becomes true when the server stops: open streams end with UNAVAILABLE.
+    stopping: Option<watch::Receiver<bool>>,
+}
+
+impl ReplayGrpc {
+    /// A service over `table` that runs until it is dropped.
+    pub fn new(table: Arc<Table>) -> ReplayGrpc {
+        ReplayGrpc { table, open_streams: Arc::default(), max_prefetch: DEFAULT_MAX_PREFETCH, stopping: None }
+    }
+
+    /// Ends every open stream with UNAVAILABLE once `stopping` turns true (so a graceful
+    /// shutdown is not held up by long-lived streams).
+    pub fn with_shutdown(mut self, stopping: watch::Receiver<bool>) -> ReplayGrpc {
+        self.stopping = Some(stopping);
+        self
+    }
+
+    /// Largest prefetch a Sample stream gets (≥ 1).
+    pub fn with_max_prefetch(mut self, max_prefetch: u32) -> ReplayGrpc {
+        self.max_prefetch = max_prefetch.max(1);
+        self
+    }
+
+    pub fn table(&self) -> &Arc<Table> {
+        &self.table
+    }
+
+    /// v1 servers host one table: "" or its name (replay.proto, ReplayService).
+    fn check_table(&self, name: &str) -> Result<(), Status> {
+        let ours = &self.table.config().name;
+        if name.is_empty() || name == ours {
+            Ok(())
+        } else {
+            Err(Status::not_found(format!("no table `{name}` on this server; it hosts `{ours}` (or pass \"\")")))
+        }
+    }
+
+    fn stop_flag(&self) -> StopFlag {
+        StopFlag(self.stopping.clone())
+    }
+}
+
+/// Whether the server is stopping; readable from blocking threads and awaitable.
+#[derive(Clone)]
+struct StopFlag(Option<watch::Receiver<bool>>);
+
+impl StopFlag {
+    fn is_set(&self) -> bool {
+        self.0.as_ref().is_some_and(|rx| *rx.borrow())
+    }
+
+    /// Resolves when the server starts stopping; never, if it has no shutdown signal.
+    async fn wait(&mut self) {
+        match &mut self.0 {
+            Some(rx) => {
+                if rx.wait_for(|stop| *stop).await.is_err() {
+                    // The signal's sender is gone without stopping: nobody can stop us now.
+                    std::future::pending::<()>().await;
+                }
+            }
+            None => std::future::pending::<()>().await,
+        }
+    }
+}
+
+fn shutting_down() -> Status {
+    Status::unavailable("replay server is shutting down; reconnect and resend unacknowledged batches")
+}
+
+/// Runs a table call that may block on the rate limiter, in slices of [`POLL_INTERVAL`] up to
+/// `deadline` (None: without limit). Between slices it returns `None` if `cancelled()`.
+/// A final DeadlineExceeded reports the whole wait, not the last slice.
+fn wait_polled<T>(
+    deadline: Option<Instant>,
+    cancelled: impl Fn() -> bool,
+    mut op: impl FnMut(Option<Instant>) -> Result<T, ReplayError>,
+) -> Option<Result<T, ReplayError>> {
+    let start = Instant::now();
+    loop {
+        let slice_end = Instant::now() + POLL_INTERVAL;
+        let (until, last) = match deadline {
+            Some(d) if d <= slice_end => (d, true),
+            _ => (slice_end, false),
+        };
+        match op(Some(until)) {
+            Err(ReplayError::DeadlineExceeded { op, state, .. }) if last => {
+                return Some(Err(ReplayError::DeadlineExceeded { op, waited_ms: start.elapsed().as_millis() as u64, state }));
+            }
+            Err(ReplayError::DeadlineExceeded { .. }) => {
+                if cancelled() {
+                    return None;
+                }
+            }
+            other => return Some(other),
+        }
+    }
+}
+
+/// The deadline a client set with `grpc-timeout` (tonic's `Request::set_timeout`), if any.
+fn request_deadline<T>(request: &Request<T>) -> Option<Instant> {
+    let value = request.metadata().get("grpc-timeout")?.to_str().ok()?;
+    let timeout = parse_grpc_timeout(value)?;
+    Some(Instant::now() + timeout)
+}
+
+/// `grpc-timeout` is 1–8 digits and a unit: H, M, S, m (ms), u (µs), n (ns)
+/// (gRPC over HTTP/2, "Requests"). Malformed values are ignored, as tonic ignores them.
+fn parse_grpc_timeout(value: &str) -> Option<Duration> {
+    if value.len() < 2 || value.len() > 9 {
+        return None;
+    }
+    let (digits, unit) = value.split_at(value.len() - 1);
+    let n: u64 = digits.parse().ok()?;
+    Some(match unit {
+        "H" => Duration::from_secs(n * 3600),
+        "M" => Duration::from_secs(n * 60),
+        "S" => Duration::from_secs(n),
+        "m" => Duration::from_millis(n),
+        "u" => Duration::from_micros(n),
+        "n" => Duration::from_nanos(n),
+        _ => return None,
+    })
+}
+
+/// Holds an actor's Insert-stream slot; frees it when dropped (stream end, any cause).
+struct StreamSlot {
+    open_streams: Arc<Mutex<HashSet<String>>>,
+    actor_id: String,
+}
+
+impl StreamSlot {
+    fn claim(open_streams: &Arc<Mutex<HashSet<String>>>, actor_id: &str) -> Option<StreamSlot> {
+        let mut open = open_streams.lock().unwrap_or_else(|p| p.into_inner());
+        open.insert(actor_id.to_owned()).then(|| StreamSlot { open_streams: Arc::clone(open_streams), actor_id: actor_id.to_owned() })
+    }
+}
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        self.open_streams.lock().unwrap_or_else(|p| p.into_inner()).remove(&self.actor_id);
+    }
+}
+
+/// A status tonic produced while decoding a client message, as the status the client gets.
+/// Returns None for transport failures (the peer reset the stream or went away): those are
+/// not the client's data and are not counted as rejections.
+fn decode_rejection(status: &Status) -> Option<Status> {
+    match status.code() {
+        // Length prefix above MAX_MESSAGE_BYTES; tonic stops before reading the body.
+        tonic::Code::OutOfRange => Some(status.clone()),
+        // prost could not parse the bytes (tonic-prost reports INTERNAL; for us it is the
+        // client's malformed input, so INVALID_ARGUMENT), or a bad compression flag.
+        tonic::Code::Internal
+            if status.message().starts_with("failed to decode Protobuf message")
+                || status.message().starts_with("protocol error: received message with invalid compression flag") =>
+        {
+            Some(Status::invalid_argument(format!("malformed TransitionBatch: {}", status.message())))
+        }
+        _ => None,
+    }
+}
+
+/// One Insert stream, from its first batch to its end. See the module diagram.
+struct InsertSession {
+    table: Arc<Table>,
+    open_streams: Arc<Mutex<HashSet<String>>>,
+    stop: StopFlag,
+    deadline: Option<Instant>,
+    acks: mpsc::Sender<Result<InsertAck, Status>>,
+    /// Set by the first batch with a well-formed actor_id.
+    slot: Option<StreamSlot>,
+}
+
+impl InsertSession {
+    async fn run(mut self, mut inbound: Streaming<TransitionBatch>) {
+        let mut stop = self.stop.clone();
+        loop {
+            let next = tokio::select! {
+                biased;
+                _ = self.acks.closed() => {
+                    debug!("client went away");
+                    return;
+                }
+                _ = stop.wait() => {
+                    let _ = self.acks.send(Err(shutting_down())).await;
+                    return;
+                }
+                next = inbound.message() => next,
+            };
+            let batch = match next {
+                Ok(Some(batch)) => batch,
+                // Half-closed: every batch read has been acked, so the stream ends with OK.
+                Ok(None) => {
+                    debug!("client half-closed");
+                    return;
+                }
+                Err(status) => {
+                    match decode_rejection(&status) {
+                        Some(reply) => {
+                            let who = self.slot.as_ref().map_or("", |s| s.actor_id.as_str());
+                            self.table.record_rejection(who, reply.message());
+                            let _ = self.acks.send(Err(reply)).await;
+                        }
+                        None => debug!(%status, "stream failed"),
+                    }
+                    return;
+                }
+            };
+            if let Err(status) = self.check_actor(&batch) {
+                let _ = self.acks.send(Err(status)).await;
+                return;
+            }
+            let Some(reply) = self.insert(batch).await else {
+                return; // the client went away while the insert was blocked
+            };
+            let failed = reply.is_err();
+            if let Err(status) = &reply {
+                debug!(%status, "insert failed; ending stream");
+            }
+            if self.acks.send(reply).await.is_err() || failed {
+                return;
+            }
+        }
+    }
+
+    /// One actor per stream: the first batch claims the actor's slot, later batches must
+    /// carry the same actor_id.
+    fn check_actor(&mut self, batch: &TransitionBatch) -> Result<(), Status> {
+        match &self.slot {
+            Some(slot) if slot.actor_id != batch.actor_id => {
+                let why = format!(
+                    "batch of actor_id `{}` on the Insert stream of actor_id `{}`; a stream carries one actor",
+                    batch.actor_id.chars().take(MAX_ACTOR_ID_BYTES).collect::<String>(),
+                    slot.actor_id
+                );
+                self.table.record_rejection(&slot.actor_id, &why);
+                Err(Status::invalid_argument(why))
+            }
+            Some(_) => Ok(()),
+            // A malformed actor_id claims nothing: Table::insert rejects the batch and counts it.
+            None if batch.actor_id.is_empty() || batch.actor_id.len() > MAX_ACTOR_ID_BYTES => Ok(()),
+            None => {
+                let slot = StreamSlot::claim(&self.open_streams, &batch.actor_id).ok_or_else(|| {
+                    warn!(actor_id = %batch.actor_id, "second Insert stream for one actor refused");
+                    Status::aborted(format!(
+                        "another Insert stream of actor_id `{}` is open; use one stream per actor (retry after it ends)",
+                        batch.actor_id
+                    ))
+                })?;
+                tracing::Span::current().record("actor_id", batch.actor_id.as_str());
+                info!("insert stream opened");
+                self.slot = Some(slot);
+                Ok(())
+            }
+        }
+    }
+
+    /// Table::insert on the blocking pool; None when the client went away meanwhile.
+    async fn insert(&self, batch: TransitionBatch) -> Option<Result<InsertAck, Status>> {
+        let table = Arc::clone(&self.table);
+        let acks = self.acks.clone();
+        let stop = self.stop.clone();
+        let deadline = self.deadline;
+        let span = tracing::Span::current();
+        let joined = tokio::task::spawn_blocking(move || {
+            let _enter = span.enter();
+            wait_polled(deadline, || acks.is_closed() || stop.is_set(), |until| table.insert(&batch, until))
+        })
+        .await;
+        match joined {
+            Ok(Some(result)) => Some(result.map_err(|e| e.to_status())),
+            Ok(None) if self.stop.is_set() => Some(Err(shutting_down())),
+            Ok(None) => None,
+            Err(join) => Some(Err(Status::internal(format!("insert task failed: {join}")))),
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl ReplayService for ReplayGrpc {
+    type InsertStream = ReceiverStream<Result<InsertAck, Status>>;
+    type SampleStream = ReceiverStream<Result<SampledBatch, Status>>;
+
+    async fn insert(&self, request: Request<Streaming<TransitionBatch>>) -> Result<Response<Self::InsertStream>, Status> {
+        let deadline = request_deadline(&request);
+        let peer = request.remote_addr();
+        let span = info_span!("Insert", table = %self.table.config().name, actor_id = tracing::field::Empty, peer = ?peer);
+        let (acks, rx) = mpsc::channel(ACK_CHANNEL_DEPTH);
+        let session = InsertSession {
+            table: Arc::clone(&self.table),
+            open_streams: Arc::clone(&self.open_streams),
+            stop: self.stop_flag(),
+            deadline,
+            acks,
+            slot: None,
+        };
+        tokio::spawn(session.run(request.into_inner()).instrument(span));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn sample(&self, request: Request<SampleRequest>) -> Result<Response<Self::SampleStream>, Status> {
+        let peer = request.remote_addr();
+        let req = request.into_inner();
+        check_protocol_version(req.protocol_version)?;
+        self.check_table(&req.table)?;
+        let rows = req.validate(self.table.config().max_sample_rows)?;
+        let prefetch = req.prefetch.clamp(1, self.max_prefetch);
+        let span = info_span!("Sample", table = %self.table.config().name, batch_size = rows, prefetch, max_batches = req.max_batches, peer = ?peer);
+        span.in_scope(|| info!(timeout_ms = req.timeout_ms, importance_beta = req.importance_beta, "sample stream opened"));
+        let (tx, rx) = mpsc::channel(prefetch as usize);
+        let table = Arc::clone(&self.table);
+        let stop = self.stop_flag();
+        let runtime = tokio::runtime::Handle::current();
+        // One blocking thread per stream for its whole life: it draws, then waits for room.
+        tokio::task::spawn_blocking(move || {
+            let _enter = span.enter();
+            let mut sent = 0u64;
+            while req.max_batches == 0 || sent < req.max_batches {
+                // Reserve before drawing: each prefetched minibatch is charged to the rate
+                // limiter when drawn, so never draw more than `prefetch` ahead of the client.
+                let Ok(permit) = runtime.block_on(tx.reserve()) else {
+                    debug!(sent, "client went away");
+                    return;
+                };
+                if stop.is_set() {
+                    permit.send(Err(Status::unavailable("replay server is shutting down")));
+                    return;
+                }
+                let deadline = (req.timeout_ms > 0).then(|| Instant::now() + Duration::from_millis(req.timeout_ms.into()));
+                let beta = Some(f64::from(req.importance_beta));
+                match wait_polled(deadline, || tx.is_closed() || stop.is_set(), |until| table.sample(rows, beta, until)) {
+                    Some(Ok(batch)) => {
+                        permit.send(Ok(batch));
+                        sent += 1;
+                    }
+                    Some(Err(e)) => {
+                        debug!(error = %e, sent, "sample stream ends");
+                        permit.send(Err(e.to_status()));
+                        return;
+                    }
+                    None if stop.is_set() => {
+                        permit.send(Err(Status::unavailable("replay server is shutting down")));
+                        return;
+                    }
+                    None => {
+                        debug!(sent, "client went away while the sampler was blocked");
+                        return;
+                    }
+                }
+            }
+            debug!(sent, "max_batches reached");
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn update_priorities(&self, request: Request<PriorityUpdate>) -> Result<Response<PriorityUpdateResponse>, Status> {
+        let update = request.into_inner();
+        check_protocol_version(update.protocol_version)?;
+        self.check_table(&update.table)?;
+        let span = info_span!("UpdatePriorities", table = %self.table.config().name, keys = update.keys.len());
+        if self.table.config().sampler == SamplerConfig::Uniform {
+            return Err(Status::failed_precondition(format!(
+                "table `{}` samples uniformly; it has no priorities to update",
+                self.table.config().name
+            )));
+        }
+        update.validate(MAX_PRIORITY_KEYS)?;
+        let table = Arc::clone(&self.table);
+        let (updated, unknown_keys) = tokio::task::spawn_blocking(move || {
+            let _enter = span.enter();
+            table.update_priorities(&update.keys, &update.priorities)
+        })
+        .await
+        .map_err(|e| Status::internal(format!("update task failed: {e}")))?
+        .map_err(|e| e.to_status())?;
+        Ok(Response::new(PriorityUpdateResponse { updated, unknown_keys }))
+    }
+
+    async fn server_info(&self, request: Request<ServerInfoRequest>) -> Result<Response<ServerInfoResponse>, Status> {
+        check_protocol_version(request.get_ref().protocol_version)?;
+        let _span = info_span!("ServerInfo", table = %self.table.config().name).entered();
+        Ok(Response::new(server_info(&self.table)))
+    }
+}
+
+/// `Table::info` plus the per-actor fields the transport adds from `Table::actors`: rejected
+/// batches, the last rejection and the policy-version lag.
+pub fn server_info(table: &Table) -> ServerInfoResponse {
+    let mut info = table.info();
+    let stats = table.actors();
+    let newest = newest_policy_version(stats.values());
+    for actor in &mut info.actors {
+        if let Some(s) = stats.get(&actor.actor_id) {
+            actor.rejected_batches = s.rejected_batches;
+            actor.last_rejection = s.last_rejection.clone();
+            actor.policy_version_lag = policy_version_lag(newest, s);
+        }
+    }
+    info
+}
+
+/// The newest policy_version seen from any actor that has inserted something.
+pub fn newest_policy_version<'a>(actors: impl IntoIterator<Item = &'a ActorStats>) -> u64 {
+    actors.into_iter().filter(|a| a.batches > 0).map(|a| a.last_policy_version).max().unwrap_or(0)
+}
+
+/// How many policy versions `actor` is behind `newest`; 0 when it has inserted nothing.
+pub fn policy_version_lag(newest: u64, actor: &ActorStats) -> u64 {
+    if actor.batches > 0 { newest.saturating_sub(actor.last_policy_version) } else { 0 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grpc_timeout_header_parses_every_unit_and_rejects_junk() {
+        assert_eq!(parse_grpc_timeout("5S"), Some(Duration::from_secs(5)));
+        assert_eq!(parse_grpc_timeout("250m"), Some(Duration::from_millis(250)));
+        assert_eq!(parse_grpc_timeout("2M"), Some(Duration::from_secs(120)));
+        assert_eq!(parse_grpc_timeout("1H"), Some(Duration::from_secs(3600)));
+        assert_eq!(parse_grpc_timeout("7u"), Some(Duration::from_micros(7)));
+        assert_eq!(parse_grpc_timeout("9n"), Some(Duration::from_nanos(9)));
+        assert_eq!(parse_grpc_timeout("S"), None);
+        assert_eq!(parse_grpc_timeout("123456789S"), None);
+        assert_eq!(parse_grpc_timeout("5x"), None);
+    }
+
+    #[test]
+    fn polled_wait_reports_the_whole_wait_on_deadline() {
+        let deadline = Instant::now() + Duration::from_millis(250);
+        let r: Option<Result<(), ReplayError>> = wait_polled(Some(deadline), || false, |until| {
+            std::thread::sleep(until.expect("always a slice deadline").saturating_duration_since(Instant::now()));
+            Err(ReplayError::DeadlineExceeded { op: "insert", waited_ms: 1, state: String::new() })
+        });
+        match r {
+            Some(Err(ReplayError::DeadlineExceeded { waited_ms, .. })) => assert!(waited_ms >= 240, "{waited_ms}"),
+            other => panic!("expected DeadlineExceeded, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn polled_wait_gives_up_when_cancelled() {
+        let r: Option<Result<(), ReplayError>> =
+            wait_polled(None, || true, |_| Err(ReplayError::DeadlineExceeded { op: "sample", waited_ms: 0, state: String::new() }));
+        assert!(r.is_none());
+    }
+}

@@ -1,0 +1,362 @@
+//! Transport set-up for the replay service: its configuration, the security rule for
+//! non-loopback listeners, and [`run`]/[`serve`], which tests start on `127.0.0.1:0`.
+//!
+//! ```text
+//!  TcpListener ─► [TLS, when configured] ─► bearer-token check ─► ReplayServiceServer(ReplayGrpc)
+//!                                             (UNAUTHENTICATED)     16 MiB limits both ways
+//!  shutdown future ─► streams end UNAVAILABLE ─► HTTP/2 GOAWAY ─► at most `shutdown_grace` later, return
+//! ```
+//!
+//! Security rule: a loopback address is reachable only from this host, so plain HTTP/2 is
+//! allowed there; any other address (including 0.0.0.0) needs TLS *and* a bearer token, and
+//! the server refuses to start without both, because otherwise anyone who can reach the port
+//! can fill the table with garbage or read every transition.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use mapless_proto::MAX_MESSAGE_BYTES;
+use mapless_proto::v1::replay_service_server::ReplayServiceServer;
+use serde::{Deserialize, Serialize};
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tonic::service::Interceptor;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::server::TcpIncoming;
+use tonic::transport::{Identity, Server, ServerTlsConfig};
+use tonic::{Request, Status};
+use tracing::{info, warn};
+
+use crate::config::{PersistenceConfig, TableConfig};
+use crate::error::ReplayError;
+use crate::grpc::{DEFAULT_MAX_PREFETCH, ReplayGrpc};
+use crate::table::Table;
+
+/// Default gRPC address: loopback only.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
+/// Default Prometheus address: loopback only (9464 is the OpenTelemetry Prometheus port).
+pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9464";
+/// HTTP/2 pings that find dead peers (a crashed actor host sends no RST), so their streams —
+/// and their actor's one-stream slot — are released within interval + timeout.
+const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(10);
+const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// Everything the `mapless-replay` binary reads from its YAML file (flags override it).
+///
+/// ```yaml
+/// listen: 127.0.0.1:50051
+/// metrics_listen: 127.0.0.1:9464     # null disables /metrics
+/// tls: { cert: server.pem, key: server.key }
+/// auth_token_file: token.txt
+/// table: { name: transitions, capacity: 1000000, obs_dim: 17, act_dim: 2 }
+/// persistence: { dir: /var/lib/mapless/replay }
+/// ```
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// gRPC address. Loopback by default; any other address needs `tls` and `auth_token_file`.
+    pub listen: SocketAddr,
+    /// Prometheus text exposition at `http://<addr>/metrics`; none disables it.
+    pub metrics_listen: Option<SocketAddr>,
+    /// Server certificate chain and private key (PEM files).
+    pub tls: Option<TlsFiles>,
+    /// File whose content (trimmed) is the bearer token every request must carry as
+    /// `authorization: Bearer <token>`. A file, not a flag, so the token stays out of `ps`.
+    pub auth_token_file: Option<PathBuf>,
+    /// Largest SampleRequest.prefetch honoured; larger requests are clamped [replay.proto: 16].
+    pub max_prefetch: u32,
+    /// After a shutdown signal, how long open streams may take to end before they are cut.
+    pub shutdown_grace_ms: u64,
+    /// Seed of the sampler's random stream.
+    pub seed: u64,
+    /// Log lines as JSON objects instead of human-readable text.
+    pub log_json: bool,
+    /// The table this server hosts.
+    pub table: TableConfig,
+    /// Where the table persists itself (`dir: null`, the default, keeps it in memory only).
+    pub persistence: PersistenceConfig,
+    /// Also ingest over iceoryx2 shared memory, for actors on this host [default: on].
+    pub shm_enabled: bool,
+    /// Shared-memory ingest settings; none derives them from the table name
+    /// (`mapless/replay/<table>`).
+    pub shm: Option<crate::shm::ShmConfig>,
+}
+
+/// PEM files for TLS.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TlsFiles {
+    /// Certificate chain, leaf first.
+    pub cert: PathBuf,
+    /// Private key of the leaf certificate.
+    pub key: PathBuf,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig {
+            listen: DEFAULT_LISTEN.parse().expect("valid default address"),
+            metrics_listen: Some(DEFAULT_METRICS_LISTEN.parse().expect("valid default address")),
+            tls: None,
+            auth_token_file: None,
+            max_prefetch: DEFAULT_MAX_PREFETCH,
+            shutdown_grace_ms: 5_000,
+            seed: 0,
+            log_json: false,
+            table: TableConfig::default(),
+            persistence: PersistenceConfig::default(),
+            shm_enabled: true,
+            shm: None,
+        }
+    }
+}
+
+impl ServerConfig {
+    /// The shared-memory ingest settings in effect.
+    pub fn shm_config(&self) -> crate::shm::ShmConfig {
+        self.shm.clone().unwrap_or_else(|| crate::shm::ShmConfig::for_table(&self.table.name))
+    }
+}
+
+/// Why the server could not start or stopped serving.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error("config file {path}: {problem}")]
+    ConfigFile { path: PathBuf, problem: String },
+    // `error`, not `source`: the message already includes it, so a cause chain would repeat it.
+    #[error("cannot read {what} {path}: {error}")]
+    Read { what: &'static str, path: PathBuf, error: std::io::Error },
+    #[error(
+        "refusing to serve on {addr}: a non-loopback address needs TLS (tls.cert + tls.key, or --tls-cert/--tls-key) \
+         and a bearer token (auth_token_file, or --auth-token-file); without both, anyone who can reach the port can \
+         write to and read the replay table. For a local run use 127.0.0.1."
+    )]
+    Insecure { addr: SocketAddr },
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
+impl ServerConfig {
+    /// Reads a YAML file; missing keys take their defaults, unknown keys are errors.
+    pub fn from_yaml_file(path: &Path) -> Result<ServerConfig, ServerError> {
+        let text = std::fs::read_to_string(path).map_err(|error| ServerError::Read { what: "config file", path: path.into(), error })?;
+        serde_yaml::from_str(&text).map_err(|e| ServerError::ConfigFile { path: path.into(), problem: e.to_string() })
+    }
+
+    /// The table's own checks plus the security rule (see the module doc).
+    pub fn validate(&self) -> Result<(), ServerError> {
+        self.table.validate()?;
+        self.persistence.validate()?;
+        if !self.listen.ip().is_loopback() && (self.tls.is_none() || self.auth_token_file.is_none()) {
+            return Err(ServerError::Insecure { addr: self.listen });
+        }
+        Ok(())
+    }
+
+    /// Reads the TLS and token files.
+    pub fn security(&self) -> Result<Security, ServerError> {
+        let read = |what, path: &Path| std::fs::read(path).map_err(|error| ServerError::Read { what, path: path.into(), error });
+        let tls = match &self.tls {
+            Some(files) => Some(TlsPem { cert: read("TLS certificate", &files.cert)?, key: read("TLS key", &files.key)? }),
+            None => None,
+        };
+        let token = match &self.auth_token_file {
+            Some(path) => {
+                let raw = read("token file", path)?;
+                let token = String::from_utf8_lossy(&raw).trim().to_owned();
+                if token.is_empty() {
+                    return Err(ServerError::ConfigFile { path: path.clone(), problem: "the token file is empty".into() });
+                }
+                Some(token)
+            }
+            None => None,
+        };
+        Ok(Security { tls, token })
+    }
+
+    /// What [`serve`] needs besides the listener and the table.
+    pub fn serve_options(&self) -> Result<ServeOptions, ServerError> {
+        Ok(ServeOptions {
+            security: self.security()?,
+            max_prefetch: self.max_prefetch,
+            shutdown_grace: Duration::from_millis(self.shutdown_grace_ms),
+        })
+    }
+}
+
+/// TLS identity, PEM-encoded.
+#[derive(Clone)]
+pub struct TlsPem {
+    pub cert: Vec<u8>,
+    pub key: Vec<u8>,
+}
+
+/// Transport security: TLS and a bearer token, each optional on loopback, both required
+/// elsewhere.
+#[derive(Clone, Default)]
+pub struct Security {
+    pub tls: Option<TlsPem>,
+    pub token: Option<String>,
+}
+
+impl std::fmt::Debug for Security {
+    // Never print the token or the key.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Security").field("tls", &self.tls.is_some()).field("token", &self.token.is_some()).finish()
+    }
+}
+
+/// How [`serve`] runs.
+#[derive(Clone, Debug)]
+pub struct ServeOptions {
+    pub security: Security,
+    pub max_prefetch: u32,
+    pub shutdown_grace: Duration,
+}
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        ServeOptions { security: Security::default(), max_prefetch: DEFAULT_MAX_PREFETCH, shutdown_grace: Duration::from_secs(5) }
+    }
+}
+
+/// Checks `authorization: Bearer <token>` on every request; passes everything when no token
+/// is configured.
+#[derive(Clone)]
+pub struct BearerAuth {
+    expected: Option<Arc<[u8]>>,
+}
+
+impl BearerAuth {
+    pub fn new(token: Option<&str>) -> BearerAuth {
+        BearerAuth { expected: token.map(|t| Arc::from(format!("Bearer {t}").into_bytes())) }
+    }
+}
+
+impl Interceptor for BearerAuth {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(expected) = &self.expected else { return Ok(request) };
+        match request.metadata().get("authorization") {
+            Some(got) if constant_time_eq(got.as_bytes(), expected) => Ok(request),
+            Some(_) => Err(Status::unauthenticated("wrong bearer token")),
+            None => Err(Status::unauthenticated("missing `authorization: Bearer <token>` metadata")),
+        }
+    }
+}
+
+/// Equality whose time does not depend on where the inputs first differ.
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// Serves `table` on `listener` with plain HTTP/2 and no token (loopback listeners only)
+/// until `shutdown` resolves; then open streams end with UNAVAILABLE and it returns.
+pub async fn run(listener: TcpListener, table: Arc<Table>, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), ServerError> {
+    serve(listener, table, ServeOptions::default(), shutdown).await
+}
+
+/// Serves `table` on `listener` until `shutdown` resolves. Refuses a non-loopback listener
+/// without TLS and a token. Does not close the table (the caller owns it and may share it
+/// with other ingest paths).
+pub async fn serve(
+    listener: TcpListener,
+    table: Arc<Table>,
+    options: ServeOptions,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    let addr = listener.local_addr()?;
+    let security = &options.security;
+    if !addr.ip().is_loopback() && (security.tls.is_none() || security.token.is_none()) {
+        return Err(ServerError::Insecure { addr });
+    }
+    let name = table.config().name.clone();
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_shutdown(stop_rx.clone());
+    let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let service = InterceptedService::new(service, BearerAuth::new(security.token.as_deref()));
+
+    let mut builder = Server::builder().http2_keepalive_interval(Some(KEEPALIVE_INTERVAL)).http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
+    if let Some(tls) = &security.tls {
+        builder = builder.tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key)))?;
+    }
+    info!(table = %name, %addr, tls = security.tls.is_some(), token = security.token.is_some(), "replay gRPC serving");
+    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let signal = async move {
+        shutdown.await;
+        info!(table = %name, "shutting down: ending open streams");
+        let _ = stop_tx.send(true);
+    };
+    let serving = builder.add_service(service).serve_with_incoming_shutdown(incoming, signal);
+    tokio::pin!(serving);
+    let mut stopped = stop_rx;
+    let grace = options.shutdown_grace;
+    tokio::select! {
+        result = &mut serving => result?,
+        _ = async {
+            // Only reachable once the signal fired; the sender lives inside `serving`.
+            if stopped.wait_for(|s| *s).await.is_ok() {
+                tokio::time::sleep(grace).await;
+            } else {
+                std::future::pending::<()>().await;
+            }
+        } => warn!(?grace, "connections still open after the shutdown grace period; closing them"),
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_config_is_loopback_and_valid() {
+        let c = ServerConfig::default();
+        assert!(c.listen.ip().is_loopback());
+        assert_eq!(c.listen.port(), 50051);
+        assert_eq!(c.metrics_listen, Some("127.0.0.1:9464".parse().unwrap()));
+        c.validate().unwrap();
+    }
+
+    #[test]
+    fn non_loopback_needs_tls_and_token() {
+        let mut c = ServerConfig { listen: "0.0.0.0:50051".parse().unwrap(), ..ServerConfig::default() };
+        assert!(matches!(c.validate(), Err(ServerError::Insecure { .. })));
+        c.tls = Some(TlsFiles { cert: "c.pem".into(), key: "k.pem".into() });
+        assert!(matches!(c.validate(), Err(ServerError::Insecure { .. })), "TLS alone is not enough");
+        c.tls = None;
+        c.auth_token_file = Some("t".into());
+        assert!(matches!(c.validate(), Err(ServerError::Insecure { .. })), "a token alone is not enough");
+        c.tls = Some(TlsFiles { cert: "c.pem".into(), key: "k.pem".into() });
+        c.validate().unwrap();
+    }
+
+    #[test]
+    fn yaml_overrides_defaults_and_rejects_unknown_keys() {
+        let c: ServerConfig = serde_yaml::from_str("listen: 127.0.0.1:6000\ntable: { capacity: 10, obs_dim: 3, rate_limiter: { min_size_to_sample: 1 } }\n").unwrap();
+        assert_eq!(c.listen.port(), 6000);
+        assert_eq!(c.table.capacity, 10);
+        assert_eq!(c.table.act_dim, 2);
+        assert!(serde_yaml::from_str::<ServerConfig>("listne: 127.0.0.1:6000\n").is_err());
+    }
+
+    #[test]
+    fn bearer_check_needs_the_exact_token() {
+        let mut auth = BearerAuth::new(Some("s3cret"));
+        let with = |v: &str| {
+            let mut r = Request::new(());
+            r.metadata_mut().insert("authorization", v.parse().unwrap());
+            r
+        };
+        assert!(auth.call(with("Bearer s3cret")).is_ok());
+        assert_eq!(auth.call(with("Bearer s3cre")).unwrap_err().code(), tonic::Code::Unauthenticated);
+        assert_eq!(auth.call(Request::new(())).unwrap_err().code(), tonic::Code::Unauthenticated);
+        assert!(BearerAuth::new(None).call(Request::new(())).is_ok());
+    }
+}
