@@ -303,6 +303,12 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
     report(json, "replay.memory_over_raw_payload", cfg, rss as f64 / raw as f64, "ratio");
     for obs_dim in [17usize, 203] {
         for writers in [1usize, 4, 16] {
+            let v = rb::shm_ingest_rows_per_s(writers, obs_dim, d)?;
+            report(json, "replay.ingest_shm_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS, "writer": "thread"}), v, "rows/s");
+        }
+    }
+    for obs_dim in [17usize, 203] {
+        for writers in [1usize, 4, 16] {
             let v = rb::grpc_ingest_rows_per_s(writers, obs_dim, d);
             report(json, "replay.ingest_grpc_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS}), v, "rows/s");
         }

@@ -187,3 +187,54 @@ pub fn resident_bytes() -> u64 {
         .map(|pages| pages * 4096)
         .unwrap_or(0)
 }
+
+/// Rows per second stored over iceoryx2 shared memory with `writers` writer threads (each an
+/// [`ShmWriter`](crate::shm::ShmWriter) with its own window of unacknowledged batches), for
+/// about `duration`. Uses a private iceoryx2 domain and removes it afterwards.
+pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration) -> Result<f64, ReplayError> {
+    use crate::shm::{ShmConfig, ShmIngest, ShmWriter};
+    let table = Arc::new(bench_table(1_000_000, obs_dim)?);
+    let id = std::process::id();
+    let domain = format!("mlbench{id}_");
+    let cfg = ShmConfig { prefix: format!("mapless-bench/{id}"), domain: domain.clone(), ..ShmConfig::for_table("bench") };
+    let ingest = ShmIngest::spawn(Arc::clone(&table), cfg.clone())?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let threads: Vec<_> = (0..writers)
+        .map(|w| {
+            let (cfg, stop) = (cfg.clone(), Arc::clone(&stop));
+            std::thread::spawn(move || -> Result<(), ReplayError> {
+                let actor = format!("bench-{w}");
+                let mut writer = ShmWriter::connect(&cfg, &actor)?;
+                let mut batch = synthetic_batch(&actor, 1, BATCH_ROWS, obs_dim);
+                let mut seq = 0;
+                while !stop.load(Ordering::Relaxed) {
+                    seq += 1;
+                    batch.sequence = seq;
+                    writer.send(&batch)?; // waits while the window is full
+                    writer.poll_acks()?;
+                }
+                Ok(())
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let (r0, t0) = (ingest.stats().rows_stored, Instant::now());
+    std::thread::sleep(duration);
+    let rate = (ingest.stats().rows_stored - r0) as f64 / t0.elapsed().as_secs_f64();
+    stop.store(true, Ordering::Relaxed);
+    let mut result = Ok(rate);
+    for t in threads {
+        if let Ok(Err(e)) = t.join() {
+            result = Err(e);
+        }
+    }
+    ingest.stop();
+    table.close();
+    // iceoryx2 keeps one small management file per domain; this domain is ours alone.
+    for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+        if e.file_name().to_string_lossy().starts_with(&domain) {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+    result
+}
