@@ -301,6 +301,10 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
     let (rss, raw) = rb::memory(memory_rows, 17);
     let cfg = serde_json::json!({"obs_dim": 17, "rows": memory_rows, "raw_payload_bytes": raw, "resident_bytes": rss});
     report(json, "replay.memory_over_raw_payload", cfg, rss as f64 / raw as f64, "ratio");
+    let (lock_ms, insert_ms) = rb::snapshot_stall_ms(memory_rows)?;
+    let cfg = serde_json::json!({"obs_dim": 17, "rows": memory_rows, "snapshots": 3, "insert_rows": 100});
+    report(json, "replay.snapshot_lock_ms", cfg.clone(), lock_ms, "ms");
+    report(json, "replay.insert_worst_ms_during_snapshots", cfg, insert_ms, "ms");
     for obs_dim in [17usize, 203] {
         for writers in [1usize, 4, 16] {
             let v = rb::shm_ingest_rows_per_s(writers, obs_dim, d)?;

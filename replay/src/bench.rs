@@ -238,3 +238,47 @@ pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration)
     }
     result
 }
+
+/// Snapshot cost at `rows` rows of 17-float observations with persistence on (temp dir):
+/// (longest time a snapshot held the table lock, worst latency of a 100-row insert while three
+/// snapshots ran back to back), in milliseconds.
+pub fn snapshot_stall_ms(rows: usize) -> Result<(f64, f64), ReplayError> {
+    use crate::config::PersistenceConfig;
+    let dir = std::env::temp_dir().join(format!("mapless-bench-snapshot-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let cfg = TableConfig { capacity: rows, max_batch_rows: 10_000, ..bench_table(1, 17)?.config().clone() };
+    let persist = PersistenceConfig { dir: Some(dir.clone()), snapshot_interval_s: 0.0, ..PersistenceConfig::default() };
+    let (table, _) = Table::open(cfg, persist, 1)?;
+    let table = Arc::new(table);
+    for (seq, start) in (0..rows).step_by(10_000).enumerate() {
+        table.insert(&synthetic_batch("fill", seq as u64 + 1, 10_000.min(rows - start), 17), None)?;
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    let inserter = {
+        let (t, stop) = (Arc::clone(&table), Arc::clone(&stop));
+        std::thread::spawn(move || -> Result<Duration, ReplayError> {
+            let mut b = synthetic_batch("w", 0, 100, 17);
+            let mut worst = Duration::ZERO;
+            while !stop.load(Ordering::Relaxed) {
+                b.sequence += 1;
+                let t0 = Instant::now();
+                t.insert(&b, None)?;
+                worst = worst.max(t0.elapsed());
+            }
+            Ok(worst)
+        })
+    };
+    std::thread::sleep(Duration::from_millis(50));
+    let mut lock = Duration::ZERO;
+    for _ in 0..3 {
+        if let Some(info) = table.snapshot()? {
+            lock = lock.max(info.copy);
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    let worst = inserter.join().map_err(|_| ReplayError::BadRequest("inserter panicked".into()))??;
+    table.close();
+    drop(table);
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok((lock.as_secs_f64() * 1e3, worst.as_secs_f64() * 1e3))
+}
