@@ -102,8 +102,10 @@ fn example(name: &str) -> PathBuf {
     let profile_dir = exe.parent().and_then(|deps| deps.parent()).unwrap().to_path_buf();
     let built = BUILT.get_or_init(|| {
         let mut cmd = Command::new(env!("CARGO"));
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR"))
-            .args(["build", "--quiet", "-p", "mapless-replay", "--example", "shm_writer", "--example", "shm_ingest"]);
+        // The same target selection as `cargo test --workspace --all-targets` (./test.sh), so
+        // features resolve identically and this only relinks; `-p mapless-replay --example …`
+        // would unify features differently and rebuild much of the dependency tree (minutes).
+        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
         if profile_dir.file_name().is_some_and(|n| n == "release") {
             cmd.arg("--release");
         }
