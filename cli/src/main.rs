@@ -265,13 +265,8 @@ fn bench_sim(map: &str, seconds: f64, vehicles: usize, json: bool) -> Result<()>
         let mut env = bench_env(map, preset, RaycastMethod::Auto, vehicles)?;
         let r = measure(&mut env, Duration::from_secs_f64(seconds))?;
         if json {
-            let line = serde_json::json!({
-                "bench": "sim.vehicle_steps_per_s",
-                "config": {"map": map, "beams": preset.beams, "fov_deg": preset.fov_rad.to_degrees().round(), "vehicles": vehicles, "threads": 1, "method": "auto", "seconds": r.seconds},
-                "value": r.steps_per_s().round(),
-                "unit": "steps/s",
-            });
-            println!("{line}");
+            let config = serde_json::json!({"map": map, "beams": preset.beams, "fov_deg": preset.fov_rad.to_degrees().round(), "vehicles": vehicles, "threads": 1, "method": "auto", "seconds": r.seconds});
+            report(true, "sim.vehicle_steps_per_s", config, r.steps_per_s().round(), "steps/s");
         } else {
             println!("  {:<40} {:>12.0} steps/s   ({} steps, {} episodes)", preset.label, r.steps_per_s(), r.steps, r.episodes);
         }

@@ -42,6 +42,14 @@ pub fn synthetic_batch(actor: &str, seq: u64, rows: usize, obs_dim: usize) -> Tr
     b.finish(actor, seq)
 }
 
+/// Inserts `rows` synthetic rows as actor "fill", `batch_rows` at a time.
+fn fill(table: &Table, rows: usize, obs_dim: usize, batch_rows: usize) -> Result<(), ReplayError> {
+    for (seq, start) in (0..rows).step_by(batch_rows).enumerate() {
+        table.insert(&synthetic_batch("fill", seq as u64 + 1, batch_rows.min(rows - start), obs_dim), None)?;
+    }
+    Ok(())
+}
+
 fn runtime() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime")
 }
@@ -125,10 +133,7 @@ pub fn grpc_sample(rows: usize, obs_dim: usize, batch: u32, prefetch: u32, durat
     let rt = runtime();
     rt.block_on(async move {
         let table = Arc::new(bench_table(rows.max(1), obs_dim).expect("valid table"));
-        for (seq, start) in (0..rows).step_by(BATCH_ROWS).enumerate() {
-            let n = BATCH_ROWS.min(rows - start);
-            table.insert(&synthetic_batch("fill", seq as u64 + 1, n, obs_dim), None).expect("fill");
-        }
+        fill(&table, rows, obs_dim, BATCH_ROWS).expect("fill");
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
         let addr = listener.local_addr().expect("address");
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -169,10 +174,7 @@ pub fn grpc_sample(rows: usize, obs_dim: usize, batch: u32, prefetch: u32, durat
 pub fn memory(rows: usize, obs_dim: usize) -> (u64, u64) {
     let before = resident_bytes();
     let table = bench_table(rows, obs_dim).expect("valid table");
-    for (seq, start) in (0..rows).step_by(BATCH_ROWS).enumerate() {
-        let n = BATCH_ROWS.min(rows - start);
-        table.insert(&synthetic_batch("fill", seq as u64 + 1, n, obs_dim), None).expect("fill");
-    }
+    fill(&table, rows, obs_dim, BATCH_ROWS).expect("fill");
     let after = resident_bytes();
     let raw_row = (2 * obs_dim + 2 + 1) * 4 + 2 + 8 + 4 + 8;
     drop(table);
@@ -230,12 +232,7 @@ pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration)
     }
     ingest.stop();
     table.close();
-    // iceoryx2 keeps one small management file per domain; this domain is ours alone.
-    for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-        if e.file_name().to_string_lossy().starts_with(&domain) {
-            let _ = std::fs::remove_file(e.path());
-        }
-    }
+    crate::shm::remove_private_domain_files(&domain);
     result
 }
 
@@ -250,9 +247,7 @@ pub fn snapshot_stall_ms(rows: usize) -> Result<(f64, f64), ReplayError> {
     let persist = PersistenceConfig { dir: Some(dir.clone()), snapshot_interval_s: 0.0, ..PersistenceConfig::default() };
     let (table, _) = Table::open(cfg, persist, 1)?;
     let table = Arc::new(table);
-    for (seq, start) in (0..rows).step_by(10_000).enumerate() {
-        table.insert(&synthetic_batch("fill", seq as u64 + 1, 10_000.min(rows - start), 17), None)?;
-    }
+    fill(&table, rows, 17, 10_000)?;
     let stop = Arc::new(AtomicBool::new(false));
     let inserter = {
         let (t, stop) = (Arc::clone(&table), Arc::clone(&stop));

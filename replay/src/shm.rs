@@ -119,6 +119,16 @@ pub struct ShmConfig {
     pub idle_sleep_us: u64,
 }
 
+/// Removes what iceoryx2 leaves of a domain once every node of it is gone: one small
+/// management file in /dev/shm. Only for a domain this process owns alone (benchmarks, tests).
+pub fn remove_private_domain_files(domain: &str) {
+    for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+        if e.file_name().to_string_lossy().starts_with(domain) {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+}
+
 impl Default for ShmConfig {
     fn default() -> Self {
         ShmConfig::for_table(&crate::config::TableConfig::default().name)

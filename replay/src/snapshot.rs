@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::SamplerConfig;
 use crate::error::ReplayError;
 use crate::table::ActorStats;
-use crate::wal::sync_dir;
+use crate::wal::{parse_numbered_name, storage, sync_dir};
 
 const MAGIC: &[u8; 8] = b"MPLSSNAP";
 const FORMAT_VERSION: u32 = 1;
@@ -43,10 +43,6 @@ const SLOT_BYTES: usize = 13;
 /// A meta block larger than this is corruption (actor ids are ≤ 128 bytes; a million actors
 /// would still fit).
 const MAX_META_BYTES: usize = 1 << 30;
-
-fn storage(path: &Path, problem: impl std::fmt::Display) -> ReplayError {
-    ReplayError::Storage { path: path.to_path_buf(), problem: problem.to_string() }
-}
 
 /// Everything a snapshot holds besides the per-slot arrays.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -151,11 +147,7 @@ pub(crate) fn snapshot_name(lsn: u64) -> String {
 }
 
 fn parse_snapshot_name(name: &str) -> Option<u64> {
-    let digits = name.strip_prefix("snap-")?.strip_suffix(".snap")?;
-    if digits.len() != 20 || !digits.bytes().all(|b| b.is_ascii_digit()) {
-        return None;
-    }
-    digits.parse().ok()
+    parse_numbered_name(name, "snap-", ".snap")
 }
 
 /// The snapshot directory: writes, lists, loads, sets aside and prunes snapshot files.

@@ -663,6 +663,10 @@ impl Table {
         ready: impl Fn(&State) -> bool,
     ) -> Result<MutexGuard<'a, State>, ReplayError> {
         let start = Instant::now();
+        let account_blocked = |st: &mut State| {
+            let ns = start.elapsed().as_nanos() as u64;
+            if op == "insert" { st.limiter.insert_blocked(ns) } else { st.limiter.sample_blocked(ns) }
+        };
         let mut blocked = false;
         loop {
             if st.closed {
@@ -670,8 +674,7 @@ impl Table {
             }
             if ready(&st) {
                 if blocked {
-                    let ns = start.elapsed().as_nanos() as u64;
-                    if op == "insert" { st.limiter.insert_blocked(ns) } else { st.limiter.sample_blocked(ns) }
+                    account_blocked(&mut st);
                 }
                 return Ok(st);
             }
@@ -679,8 +682,7 @@ impl Table {
             let now = Instant::now();
             match deadline {
                 Some(d) if now >= d => {
-                    let ns = start.elapsed().as_nanos() as u64;
-                    if op == "insert" { st.limiter.insert_blocked(ns) } else { st.limiter.sample_blocked(ns) }
+                    account_blocked(&mut st);
                     let state = serde_json::to_string(&st.limiter.state()).unwrap_or_default();
                     return Err(ReplayError::DeadlineExceeded { op, waited_ms: start.elapsed().as_millis() as u64, state: format!("size {}, {state}", st.size) });
                 }

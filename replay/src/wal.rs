@@ -54,7 +54,7 @@ pub(crate) const MAX_RECORD_BYTES: usize = 256 << 20;
 pub(crate) const KIND_INSERT: u8 = 1;
 pub(crate) const KIND_PRIORITIES: u8 = 2;
 
-fn storage(path: &Path, problem: impl std::fmt::Display) -> ReplayError {
+pub(crate) fn storage(path: &Path, problem: impl std::fmt::Display) -> ReplayError {
     ReplayError::Storage { path: path.to_path_buf(), problem: problem.to_string() }
 }
 
@@ -64,7 +64,12 @@ pub(crate) fn segment_name(first_lsn: u64) -> String {
 
 /// `seg-<20 digits>.log` → first LSN.
 fn parse_segment_name(name: &str) -> Option<u64> {
-    let digits = name.strip_prefix("seg-")?.strip_suffix(".log")?;
+    parse_numbered_name(name, "seg-", ".log")
+}
+
+/// `<prefix><20 digits><suffix>` → the number (log segments and snapshots are named so).
+pub(crate) fn parse_numbered_name(name: &str, prefix: &str, suffix: &str) -> Option<u64> {
+    let digits = name.strip_prefix(prefix)?.strip_suffix(suffix)?;
     if digits.len() != 20 || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }

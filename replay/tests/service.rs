@@ -82,9 +82,5 @@ async fn shared_memory_and_grpc_writers_feed_one_table_in_the_service_process() 
     assert!(child.wait().expect("exit").success());
     let _ = std::fs::remove_dir_all(&dir);
     // iceoryx2 keeps one 16-byte management file per domain; ours is private, remove it.
-    for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-        if e.file_name().to_string_lossy().starts_with(&format!("svc{id}_")) {
-            let _ = std::fs::remove_file(e.path());
-        }
-    }
+    mapless_replay::shm::remove_private_domain_files(&format!("svc{id}_"));
 }
