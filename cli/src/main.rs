@@ -129,6 +129,27 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// Learner gradient updates per second for DDPG, TD3 and SAC at the paper's sizes
+    /// (17-float observations, 2 actions, 2×256 hidden, minibatch 128), with 1 and 2 threads.
+    Learner {
+        /// Seconds per configuration.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+        /// `cpu`, `cuda` or `cuda:N`.
+        #[arg(long, default_value = "cpu")]
+        device: String,
+        /// libtorch intra-op thread counts to measure.
+        #[arg(long, value_delimiter = ',', default_value = "1,2")]
+        threads: Vec<usize>,
+        /// Algorithms to measure.
+        #[arg(long, value_delimiter = ',', default_value = "ddpg,td3,sac")]
+        algos: Vec<String>,
+        /// Also measure with the twin critics evaluated one after the other (TD3, SAC).
+        #[arg(long)]
+        unfused: bool,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() {
@@ -156,6 +177,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Rollout(a) => rollout(a),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
+        Cmd::Bench { cmd: BenchCmd::Learner { seconds, device, threads, algos, unfused, json } } => bench_learner(seconds, &device, &threads, &algos, unfused, json),
     }
 }
 
@@ -318,6 +340,42 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
         report(json, "replay.sample_minibatches_per_s", cfg.clone(), s.minibatches_per_s, "minibatches/s");
         report(json, "replay.sample_latency_p50_us", cfg.clone(), s.p50_us, "us");
         report(json, "replay.sample_latency_p99_us", cfg, s.p99_us, "us");
+    }
+    Ok(())
+}
+
+fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String], unfused: bool, json: bool) -> Result<()> {
+    use mapless_learner::config::{AlgorithmKind, LearnerConfig};
+    use mapless_learner::{Device, TorchThreads, algo::bench_updates};
+    if !(seconds > 0.0) || threads.is_empty() || threads.contains(&0) {
+        bail!("--seconds must be > 0 and every --threads count ≥ 1");
+    }
+    // Fails here, with the reason, when the device is not usable on this machine.
+    Device::parse(device)?;
+    let (obs_dim, act_dim) = (17usize, 2usize);
+    let kinds = algos
+        .iter()
+        .map(|a| match a.trim().to_ascii_lowercase().as_str() {
+            "ddpg" => Ok(AlgorithmKind::Ddpg),
+            "td3" => Ok(AlgorithmKind::Td3),
+            "sac" => Ok(AlgorithmKind::Sac),
+            other => bail!("unknown algorithm `{other}` (expected ddpg, td3 or sac)"),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    if !json {
+        println!("learner updates per second on {device}: obs {obs_dim}, act {act_dim}, 2×256 hidden, minibatch 128, {seconds} s each");
+    }
+    for &t in threads {
+        for &kind in &kinds {
+            let fused_options: &[bool] = if unfused && kind != AlgorithmKind::Ddpg { &[true, false] } else { &[true] };
+            for &fused in fused_options {
+                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, ..LearnerConfig::default() };
+                // libtorch fixes the inter-op pool once per process; only the intra-op count varies.
+                let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
+                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
+                report(json, "learner.updates_per_s", config, v, "updates/s");
+            }
+        }
     }
     Ok(())
 }

@@ -66,4 +66,129 @@ pub enum LearnerError {
     /// Anything libtorch itself reported.
     #[error("libtorch: {0}")]
     Torch(#[from] tch::TchError),
+
+    /// The in-process replay table refused or failed a call (see `source::InProcess`).
+    #[error("replay table: {0}")]
+    ReplayTable(#[from] mapless_replay::ReplayError),
+
+    /// A gRPC call to a peer (the replay service, the weights service) failed: the peer could
+    /// not be reached (`Unavailable`), or it answered with an error status.
+    #[error("{service} at {endpoint}: {code:?}: {message}")]
+    Grpc {
+        /// `replay` or `weights`.
+        service: &'static str,
+        /// The address dialled.
+        endpoint: String,
+        /// The gRPC status code (transport failures are `Unavailable`).
+        code: tonic::Code,
+        /// The peer's status message, or the transport error.
+        message: String,
+    },
+
+    /// A weights snapshot, or a `.safetensors` file meant to hold one, breaks the contract.
+    #[error("invalid weights ({origin}): {reason}")]
+    InvalidWeights {
+        /// Where the weights came from: a file path, `publish`, a tensor list.
+        origin: String,
+        /// What is wrong.
+        reason: String,
+    },
+
+    /// Reading or writing a file failed.
+    #[error("{path}: {error}")]
+    FileIo {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What the OS said.
+        error: std::io::Error,
+    },
+
+    /// A replay source configured with values that cannot work (batch size 0, an endpoint
+    /// that is not a URI, a token that is not ASCII, ...).
+    #[error("invalid replay source config: {reason}")]
+    ReplaySourceConfig {
+        /// What is wrong, naming the field.
+        reason: String,
+    },
+
+    /// Priorities handed to a replay source that it cannot send (lengths differ, NaN, < 0).
+    #[error("invalid priority update: {reason}")]
+    InvalidPriorities {
+        /// What is wrong.
+        reason: String,
+    },
+
+    /// A TensorBoard event file that cannot be written or read back (bad CRC, truncated
+    /// record, an empty tag).
+    #[error("event file {path}: {reason}")]
+    EventFile {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+
+    /// A replay source stopped for good after an error that retrying cannot fix (wrong
+    /// table, wrong token, incompatible dims, ...); every later call returns this again.
+    #[error("replay source stopped: {reason}")]
+    ReplaySourceStopped {
+        /// The error that stopped it.
+        reason: String,
+    },
+
+    /// A minibatch (or observation) whose shape or values cannot be learned from.
+    #[error("invalid batch: {0}")]
+    InvalidBatch(String),
+
+    /// A learner config value outside its domain.
+    #[error("invalid learner config: `{field}` {reason}")]
+    InvalidConfig {
+        /// The field, as written in the config file.
+        field: &'static str,
+        /// What is wrong with it and what would be accepted.
+        reason: String,
+    },
+
+    /// A loss came out NaN or infinite; the step was not applied.
+    #[error("{what} is {value} at update {update}; the step was not applied (diverged, or a learning rate too high?)")]
+    NonFiniteLoss {
+        /// Which loss (`losses/critic`, ...).
+        what: &'static str,
+        /// The value.
+        value: f64,
+        /// The agent's update counter.
+        update: u64,
+    },
+
+    /// A checkpoint could not be written or read from disk.
+    #[error("checkpoint `{path}`: {reason}")]
+    CheckpointIo {
+        /// The file or directory.
+        path: std::path::PathBuf,
+        /// The operation and the OS error.
+        reason: String,
+    },
+
+    /// A checkpoint whose bytes are damaged: a checksum mismatch, a truncated or unparsable file.
+    #[error("checkpoint `{path}` is corrupt: {reason}")]
+    CheckpointCorrupt {
+        /// The file or directory.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+
+    /// An intact checkpoint that does not fit: another algorithm, other dimensions, another
+    /// format version, or tensors of other shapes.
+    #[error("checkpoint `{path}` does not match: {what} is {found}, expected {expected}")]
+    CheckpointMismatch {
+        /// The checkpoint directory.
+        path: std::path::PathBuf,
+        /// Which property differs.
+        what: String,
+        /// What this learner needs.
+        expected: String,
+        /// What the checkpoint holds.
+        found: String,
+    },
 }

@@ -1,7 +1,6 @@
 //! The mapless learner: off-policy actor–critic updates (DDPG, TD3, SAC; SPEC §2) on libtorch
 //! through tch, on CPU or CUDA.
 //!
-//! So far this crate holds the pieces every algorithm needs:
 //! - [`Device`]: `cpu` / `cuda` / `cuda:N`, checked against what libtorch can see;
 //! - [`TorchThreads`]: libtorch's CPU thread pools, set explicitly (default 1 each, because
 //!   the learner shares cores with actors and libtorch's threads spin);
@@ -14,6 +13,20 @@ mod device;
 mod error;
 pub mod nets;
 mod threads;
+
+// Algorithms and everything they need to learn and resume.
+pub mod algo;
+pub mod batch;
+pub mod checkpoint;
+pub mod driver;
+pub mod config;
+pub mod envs;
+pub mod optim;
+
+// Around the algorithms: replay sources, published weights, metrics files.
+pub mod source;
+pub mod tensorboard;
+pub mod weights;
 
 pub use device::Device;
 pub use error::LearnerError;

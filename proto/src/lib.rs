@@ -18,18 +18,22 @@
 //!   ([`v1::TransitionBatch::validate`], [`v1::SampledBatch::validate`],
 //!   [`v1::SampleRequest::validate`], [`v1::PriorityUpdate::validate`],
 //!   [`v1::WeightsSnapshot::validate`], [`v1::EpisodeStats::validate`]), a
-//!   [`TransitionBatchBuilder`], row accessors returning [`Transition`] views, f32 tensor
-//!   conversion, and the error type [`ProtoError`] with its mapping to a gRPC status.
+//!   [`TransitionBatchBuilder`], row accessors returning [`Transition`] views, column
+//!   accessors that read either encoding of the float columns ([`FloatColumn`],
+//!   [`FloatEncoding`]), f32 tensor conversion, and the error type [`ProtoError`] with its
+//!   mapping to a gRPC status.
 //!
 //! Nothing here does I/O or spawns tasks; servers and clients live in the crates that use them.
 
 mod error;
+mod floats;
 mod replay;
 mod stats;
 mod tensor;
 mod transition;
 
 pub use error::ProtoError;
+pub use floats::{FloatColumn, FloatEncoding, extend_f32le, f32le_bytes};
 pub use transition::{Transition, TransitionBatchBuilder};
 
 /// Messages, services and clients of package `mapless.v1`, generated from

@@ -4,6 +4,11 @@
 //! same nine columns. Both are checked by one function over a borrowed [`Columns`] view, so
 //! the two messages can never disagree on what a valid row is.
 //!
+//! The four float columns travel either packed (`obs`) or as little-endian bytes
+//! (`obs_f32le`); see [`FloatEncoding`]. Read them through the column accessors
+//! (`obs_column()`, `obs_values()`, ...), which work for both; [`TransitionBatch::row`]
+//! borrows `&[f32]` slices and therefore reads packed columns only.
+//!
 //! ```text
 //!  row i of a batch with obs_dim = 3, act_dim = 2:
 //!   obs      [ .. | o0 o1 o2 | .. ]   obs[3i .. 3i+3]
@@ -13,7 +18,13 @@
 //!   terminal, truncated, episode_id, step, policy_version: [i]
 //! ```
 
+use std::borrow::Cow;
+
+use prost::Message;
+use prost::bytes::Bytes;
+
 use crate::error::ProtoError;
+use crate::floats::{FloatColumn, FloatEncoding, f32le_bytes, length_delimited_overhead, put_length_delimited};
 use crate::v1::{ProtocolVersion, SampledBatch, TransitionBatch};
 use crate::{MAX_ACTOR_ID_BYTES, check_protocol_version};
 
@@ -42,19 +53,74 @@ pub struct Transition<'a> {
     pub policy_version: u64,
 }
 
+/// One float column as a message holds it: the packed field and its `_f32le` twin, at most
+/// one of them set.
+#[derive(Clone, Copy)]
+struct FloatField<'a> {
+    name: &'static str,
+    le_name: &'static str,
+    packed: &'a [f32],
+    le: &'a [u8],
+}
+
+impl<'a> FloatField<'a> {
+    /// The encoding that carries the column (the bytes when set, else the packed floats).
+    fn column(&self) -> FloatColumn<'a> {
+        FloatColumn::of(self.packed, self.le)
+    }
+
+    /// The field name of the encoding that carries the column.
+    fn carrier(&self) -> &'static str {
+        if self.le.is_empty() { self.name } else { self.le_name }
+    }
+
+    /// At most one encoding set, whole floats, `expected` values.
+    fn check_len(&self, expected: u64) -> Result<(), ProtoError> {
+        if !self.le.is_empty() {
+            if !self.packed.is_empty() {
+                return Err(ProtoError::InvalidField {
+                    field: self.le_name,
+                    reason: format!("is set together with `{}`; send exactly one encoding of a column", self.name),
+                });
+            }
+            if self.le.len() % 4 != 0 {
+                return Err(ProtoError::InvalidField {
+                    field: self.le_name,
+                    reason: format!("is {} bytes long, not a whole number of 4-byte floats", self.le.len()),
+                });
+            }
+        }
+        check_len(self.carrier(), self.column().len(), expected)
+    }
+
+    /// The first non-finite value, reported in the carrying field's name.
+    fn check_finite(&self, width: usize) -> Result<(), ProtoError> {
+        match self.column().first_non_finite() {
+            None => Ok(()),
+            Some((index, value)) => Err(ProtoError::NonFinite {
+                column: self.carrier(),
+                row: index / width,
+                element: index % width,
+                value: f64::from(value),
+            }),
+        }
+    }
+}
+
 /// Borrowed view of the nine columns both batch messages carry.
 ///
-/// Invariant established by [`Columns::check`]: every slice has exactly the length that
-/// `num_rows` and the dims imply, so [`Columns::row`] succeeds for every `i < num_rows`.
+/// Invariant established by [`Columns::check`]: every column has exactly the length that
+/// `num_rows` and the dims imply, in exactly one encoding, so [`Columns::row`] succeeds for
+/// every `i < num_rows` when the float columns are packed.
 #[derive(Clone, Copy)]
 struct Columns<'a> {
     obs_dim: u32,
     act_dim: u32,
     num_rows: u32,
-    obs: &'a [f32],
-    action: &'a [f32],
-    reward: &'a [f32],
-    next_obs: &'a [f32],
+    obs: FloatField<'a>,
+    action: FloatField<'a>,
+    reward: FloatField<'a>,
+    next_obs: FloatField<'a>,
     terminal: &'a [bool],
     truncated: &'a [bool],
     episode_id: &'a [u64],
@@ -63,8 +129,9 @@ struct Columns<'a> {
 }
 
 impl<'a> Columns<'a> {
-    /// Checks dims, row count, column lengths, finiteness and flags, in that order, so that
-    /// the first error reported is the most fundamental one. O(num_rows * (obs_dim + act_dim)).
+    /// Checks dims, row count, column encodings and lengths, finiteness and flags, in that
+    /// order, so that the first error reported is the most fundamental one.
+    /// O(num_rows * (obs_dim + act_dim)).
     fn check(
         &self,
         message: &'static str,
@@ -87,10 +154,10 @@ impl<'a> Columns<'a> {
         // u32 * u32 always fits in u64, so these products cannot overflow.
         let obs_len = rows * u64::from(self.obs_dim);
         let act_len = rows * u64::from(self.act_dim);
-        check_len("obs", self.obs.len(), obs_len)?;
-        check_len("action", self.action.len(), act_len)?;
-        check_len("reward", self.reward.len(), rows)?;
-        check_len("next_obs", self.next_obs.len(), obs_len)?;
+        self.obs.check_len(obs_len)?;
+        self.action.check_len(act_len)?;
+        self.reward.check_len(rows)?;
+        self.next_obs.check_len(obs_len)?;
         check_len("terminal", self.terminal.len(), rows)?;
         check_len("truncated", self.truncated.len(), rows)?;
         check_len("episode_id", self.episode_id.len(), rows)?;
@@ -100,10 +167,10 @@ impl<'a> Columns<'a> {
         // Lengths are now known to match, so the dims are non-zero and fit in usize.
         let obs_dim = self.obs_dim as usize;
         let act_dim = self.act_dim as usize;
-        check_finite("obs", self.obs, obs_dim)?;
-        check_finite("action", self.action, act_dim)?;
-        check_finite("reward", self.reward, 1)?;
-        check_finite("next_obs", self.next_obs, obs_dim)?;
+        self.obs.check_finite(obs_dim)?;
+        self.action.check_finite(act_dim)?;
+        self.reward.check_finite(1)?;
+        self.next_obs.check_finite(obs_dim)?;
         if let Some(row) = self
             .terminal
             .iter()
@@ -115,8 +182,9 @@ impl<'a> Columns<'a> {
         Ok(self.num_rows as usize)
     }
 
-    /// Row `i`, or `None` when `i >= num_rows` or a column is too short for it (only possible
-    /// on a batch that has not passed [`Columns::check`]). Never panics.
+    /// Row `i`, or `None` when `i >= num_rows`, a column is too short for it (only possible
+    /// on a batch that has not passed [`Columns::check`]) or a float column travels as bytes
+    /// (which cannot be borrowed as `&[f32]`). Never panics.
     fn row(&self, i: usize) -> Option<Transition<'a>> {
         if i >= self.num_rows as usize {
             return None;
@@ -126,7 +194,7 @@ impl<'a> Columns<'a> {
         Some(Transition {
             obs: vector(self.obs, i, obs_dim)?,
             action: vector(self.action, i, act_dim)?,
-            reward: *self.reward.get(i)?,
+            reward: *packed(self.reward)?.get(i)?,
             next_obs: vector(self.next_obs, i, obs_dim)?,
             terminal: *self.terminal.get(i)?,
             truncated: *self.truncated.get(i)?,
@@ -167,24 +235,64 @@ pub(crate) fn check_len(column: &'static str, got: usize, expected: u64) -> Resu
     }
 }
 
-/// Finds the first non-finite value of a row-major column with `width` values per row.
-/// `width` must be > 0.
-fn check_finite(column: &'static str, values: &[f32], width: usize) -> Result<(), ProtoError> {
-    match values.iter().position(|v| !v.is_finite()) {
-        None => Ok(()),
-        Some(index) => Err(ProtoError::NonFinite {
-            column,
-            row: index / width,
-            element: index % width,
-            value: f64::from(values[index]),
-        }),
+/// The packed floats of a field, or `None` when the column travels as bytes.
+fn packed(field: FloatField<'_>) -> Option<&[f32]> {
+    field.le.is_empty().then_some(field.packed)
+}
+
+/// The `i`-th vector of length `width` in a packed row-major column, without panicking.
+fn vector(field: FloatField<'_>, i: usize, width: usize) -> Option<&[f32]> {
+    let values = packed(field)?;
+    let start = i.checked_mul(width)?;
+    values.get(start..start.checked_add(width)?)
+}
+
+/// Moves one float column into `to`, unless it is set in both encodings (left as it is, for
+/// `validate` to report) or already there.
+fn convert_column(packed: &mut Vec<f32>, le: &mut Bytes, to: FloatEncoding) {
+    match to {
+        FloatEncoding::F32Le if le.is_empty() && !packed.is_empty() => {
+            *le = f32le_bytes(packed);
+            *packed = Vec::new();
+        }
+        FloatEncoding::Packed if packed.is_empty() && !le.is_empty() => {
+            *packed = FloatColumn::F32Le(le).to_vec();
+            *le = Bytes::new();
+        }
+        _ => {}
     }
 }
 
-/// The `i`-th vector of length `width` in a row-major column, without panicking.
-fn vector(values: &[f32], i: usize, width: usize) -> Option<&[f32]> {
-    let start = i.checked_mul(width)?;
-    values.get(start..start.checked_add(width)?)
+/// The float columns' (tag of the `_f32le` field, packed values, bytes) in field order.
+type FloatFields<'a> = [(u32, &'a [f32], &'a [u8]); 4];
+
+/// Appends `shell` (a message whose packed float fields are empty) followed by the float
+/// columns as `bytes *_f32le` fields: the wire form of the message with every float column in
+/// the F32Le encoding, without building it. A column set in both encodings keeps its packed
+/// field (in `shell`) so that the receiver still sees, and rejects, both.
+fn encode_with_f32le_fields(shell: &impl Message, fields: FloatFields<'_>, out: &mut Vec<u8>) {
+    out.reserve(encoded_len_with_f32le_fields(shell, fields));
+    shell.encode_raw(out);
+    for (tag, packed, le) in fields {
+        if !le.is_empty() {
+            put_length_delimited(out, tag, le.len());
+            out.extend_from_slice(le);
+        } else if !packed.is_empty() {
+            put_length_delimited(out, tag, packed.len() * 4);
+            crate::floats::extend_f32le(out, packed);
+        }
+    }
+}
+
+fn encoded_len_with_f32le_fields(shell: &impl Message, fields: FloatFields<'_>) -> usize {
+    let floats: usize = fields
+        .iter()
+        .map(|&(tag, packed, le)| {
+            let n = if le.is_empty() { packed.len() * 4 } else { le.len() };
+            if n == 0 { 0 } else { length_delimited_overhead(tag, n) + n }
+        })
+        .sum();
+    shell.encoded_len() + floats
 }
 
 fn check_actor_id(actor_id: &str) -> Result<(), ProtoError> {
@@ -212,10 +320,10 @@ impl TransitionBatch {
             obs_dim: self.obs_dim,
             act_dim: self.act_dim,
             num_rows: self.num_rows,
-            obs: &self.obs,
-            action: &self.action,
-            reward: &self.reward,
-            next_obs: &self.next_obs,
+            obs: FloatField { name: "obs", le_name: "obs_f32le", packed: &self.obs, le: &self.obs_f32le },
+            action: FloatField { name: "action", le_name: "action_f32le", packed: &self.action, le: &self.action_f32le },
+            reward: FloatField { name: "reward", le_name: "reward_f32le", packed: &self.reward, le: &self.reward_f32le },
+            next_obs: FloatField { name: "next_obs", le_name: "next_obs_f32le", packed: &self.next_obs, le: &self.next_obs_f32le },
             terminal: &self.terminal,
             truncated: &self.truncated,
             episode_id: &self.episode_id,
@@ -255,6 +363,11 @@ impl TransitionBatch {
 
     /// Row `i`, borrowing from the batch; `None` if `i >= num_rows` or the batch is
     /// malformed at that row. Call [`TransitionBatch::validate`] first on received batches.
+    ///
+    /// Rows borrow `&[f32]` from packed float columns, so a batch whose float columns travel
+    /// as bytes has no rows here: convert it with
+    /// `convert_float_columns(FloatEncoding::Packed)` first, or read the columns
+    /// (`obs_column()`, ...).
     pub fn row(&self, i: usize) -> Option<Transition<'_>> {
         self.columns().row(i)
     }
@@ -273,10 +386,10 @@ impl SampledBatch {
             obs_dim: self.obs_dim,
             act_dim: self.act_dim,
             num_rows: self.num_rows,
-            obs: &self.obs,
-            action: &self.action,
-            reward: &self.reward,
-            next_obs: &self.next_obs,
+            obs: FloatField { name: "obs", le_name: "obs_f32le", packed: &self.obs, le: &self.obs_f32le },
+            action: FloatField { name: "action", le_name: "action_f32le", packed: &self.action, le: &self.action_f32le },
+            reward: FloatField { name: "reward", le_name: "reward_f32le", packed: &self.reward, le: &self.reward_f32le },
+            next_obs: FloatField { name: "next_obs", le_name: "next_obs_f32le", packed: &self.next_obs, le: &self.next_obs_f32le },
             terminal: &self.terminal,
             truncated: &self.truncated,
             episode_id: &self.episode_id,
@@ -340,6 +453,7 @@ impl SampledBatch {
 
     /// Row `i`, borrowing from the minibatch; `None` if `i >= num_rows` or the minibatch is
     /// malformed at that row. Keys and weights are `keys[i]`, `importance_weights[i]`.
+    /// Packed float columns only, as [`TransitionBatch::row`].
     pub fn row(&self, i: usize) -> Option<Transition<'_>> {
         self.columns().row(i)
     }
@@ -348,6 +462,164 @@ impl SampledBatch {
     pub fn iter_rows(&self) -> impl Iterator<Item = Transition<'_>> + '_ {
         let columns = self.columns();
         (0..self.num_rows as usize).map_while(move |i| columns.row(i))
+    }
+}
+
+/// Column accessors and encoding conversion shared by both batch messages.
+macro_rules! float_column_accessors {
+    ($ty:ident) => {
+        impl $ty {
+            /// Observations s_t (row-major, `num_rows * obs_dim`), in whichever encoding
+            /// carries them: `obs_f32le` when set, else `obs`.
+            pub fn obs_column(&self) -> FloatColumn<'_> {
+                FloatColumn::of(&self.obs, &self.obs_f32le)
+            }
+
+            /// Actions a_t (row-major, `num_rows * act_dim`): `action_f32le` when set, else
+            /// `action`.
+            pub fn action_column(&self) -> FloatColumn<'_> {
+                FloatColumn::of(&self.action, &self.action_f32le)
+            }
+
+            /// Rewards (`num_rows`): `reward_f32le` when set, else `reward`.
+            pub fn reward_column(&self) -> FloatColumn<'_> {
+                FloatColumn::of(&self.reward, &self.reward_f32le)
+            }
+
+            /// Next observations s_{t+1} (row-major, `num_rows * obs_dim`):
+            /// `next_obs_f32le` when set, else `next_obs`.
+            pub fn next_obs_column(&self) -> FloatColumn<'_> {
+                FloatColumn::of(&self.next_obs, &self.next_obs_f32le)
+            }
+
+            /// The observations as floats: borrowed when packed (or aligned bytes), else
+            /// copied once. See [`FloatColumn::to_cow`].
+            pub fn obs_values(&self) -> Cow<'_, [f32]> {
+                self.obs_column().to_cow()
+            }
+
+            /// The actions as floats (borrowed or copied, as [`Self::obs_values`]).
+            pub fn action_values(&self) -> Cow<'_, [f32]> {
+                self.action_column().to_cow()
+            }
+
+            /// The rewards as floats (borrowed or copied, as [`Self::obs_values`]).
+            pub fn reward_values(&self) -> Cow<'_, [f32]> {
+                self.reward_column().to_cow()
+            }
+
+            /// The next observations as floats (borrowed or copied, as [`Self::obs_values`]).
+            pub fn next_obs_values(&self) -> Cow<'_, [f32]> {
+                self.next_obs_column().to_cow()
+            }
+
+            /// Moves every float column into the encoding `to` (one copy per column that
+            /// changes). A column set in both encodings, which `validate` rejects, is left
+            /// as it is. Use `FloatEncoding::Packed` before reading the fields `obs`, ...
+            /// directly or through `row`, and `FloatEncoding::F32Le` before sending a wide
+            /// batch to a receiver that decodes packed floats value by value.
+            pub fn convert_float_columns(&mut self, to: FloatEncoding) {
+                convert_column(&mut self.obs, &mut self.obs_f32le, to);
+                convert_column(&mut self.action, &mut self.action_f32le, to);
+                convert_column(&mut self.reward, &mut self.reward_f32le, to);
+                convert_column(&mut self.next_obs, &mut self.next_obs_f32le, to);
+            }
+
+            /// The float columns' (tag of the `_f32le` field, packed floats, bytes).
+            fn float_fields(&self) -> FloatFields<'_> {
+                [
+                    (Self::OBS_F32LE_TAG, &self.obs[..], &self.obs_f32le[..]),
+                    (Self::OBS_F32LE_TAG + 1, &self.action[..], &self.action_f32le[..]),
+                    (Self::OBS_F32LE_TAG + 2, &self.reward[..], &self.reward_f32le[..]),
+                    (Self::OBS_F32LE_TAG + 3, &self.next_obs[..], &self.next_obs_f32le[..]),
+                ]
+            }
+
+            /// Appends the message's protobuf encoding with every float column in the F32Le
+            /// encoding (`bytes *_f32le` fields), whichever encoding it holds them in: what
+            /// `convert_float_columns(FloatEncoding::F32Le)` followed by `encode` would
+            /// write, without converting. Packed columns cost one `memcpy` each instead of
+            /// an encode loop, and the receiver decodes them with one copy (or none).
+            pub fn encode_f32le(&self, out: &mut Vec<u8>) {
+                encode_with_f32le_fields(&self.without_packed_floats(), self.float_fields(), out);
+            }
+
+            /// Bytes [`Self::encode_f32le`] appends.
+            pub fn encoded_len_f32le(&self) -> usize {
+                encoded_len_with_f32le_fields(&self.without_packed_floats(), self.float_fields())
+            }
+        }
+    };
+}
+
+float_column_accessors!(TransitionBatch);
+float_column_accessors!(SampledBatch);
+
+impl TransitionBatch {
+    /// Field number of `obs_f32le`; action, reward and next_obs follow it (transition.proto).
+    const OBS_F32LE_TAG: u32 = 16;
+
+    /// The message without its packed float columns (those set in both encodings kept, for
+    /// the receiver to reject), and without the `_f32le` fields, which `encode_f32le` writes
+    /// itself. Every field is listed, so a field added to the message fails to compile here
+    /// instead of being dropped from `encode_f32le`.
+    fn without_packed_floats(&self) -> TransitionBatch {
+        let keep = |packed: &Vec<f32>, le: &Bytes| if le.is_empty() { Vec::new() } else { packed.clone() };
+        TransitionBatch {
+            protocol_version: self.protocol_version,
+            actor_id: self.actor_id.clone(),
+            sequence: self.sequence,
+            obs_dim: self.obs_dim,
+            act_dim: self.act_dim,
+            num_rows: self.num_rows,
+            obs: keep(&self.obs, &self.obs_f32le),
+            action: keep(&self.action, &self.action_f32le),
+            reward: keep(&self.reward, &self.reward_f32le),
+            next_obs: keep(&self.next_obs, &self.next_obs_f32le),
+            terminal: self.terminal.clone(),
+            truncated: self.truncated.clone(),
+            episode_id: self.episode_id.clone(),
+            step: self.step.clone(),
+            policy_version: self.policy_version.clone(),
+            obs_f32le: Bytes::new(),
+            action_f32le: Bytes::new(),
+            reward_f32le: Bytes::new(),
+            next_obs_f32le: Bytes::new(),
+        }
+    }
+}
+
+impl SampledBatch {
+    /// Field number of `obs_f32le`; action, reward and next_obs follow it (replay.proto).
+    const OBS_F32LE_TAG: u32 = 19;
+
+    /// As [`TransitionBatch`]'s: every field listed, packed floats and `_f32le` left out.
+    fn without_packed_floats(&self) -> SampledBatch {
+        let keep = |packed: &Vec<f32>, le: &Bytes| if le.is_empty() { Vec::new() } else { packed.clone() };
+        SampledBatch {
+            protocol_version: self.protocol_version,
+            table: self.table.clone(),
+            obs_dim: self.obs_dim,
+            act_dim: self.act_dim,
+            num_rows: self.num_rows,
+            table_size: self.table_size,
+            keys: self.keys.clone(),
+            probabilities: self.probabilities.clone(),
+            importance_weights: self.importance_weights.clone(),
+            obs: keep(&self.obs, &self.obs_f32le),
+            action: keep(&self.action, &self.action_f32le),
+            reward: keep(&self.reward, &self.reward_f32le),
+            next_obs: keep(&self.next_obs, &self.next_obs_f32le),
+            terminal: self.terminal.clone(),
+            truncated: self.truncated.clone(),
+            episode_id: self.episode_id.clone(),
+            step: self.step.clone(),
+            policy_version: self.policy_version.clone(),
+            obs_f32le: Bytes::new(),
+            action_f32le: Bytes::new(),
+            reward_f32le: Bytes::new(),
+            next_obs_f32le: Bytes::new(),
+        }
     }
 }
 

@@ -41,6 +41,10 @@ fn generate(out_dir: &Path) {
 
     let mut config = tonic_prost_build::Config::new();
     config.protoc_executable(protoc);
+    // The `bytes *_f32le` float columns decode as `bytes::Bytes`, which borrows from tonic's
+    // receive buffer instead of copying (transition.proto, "Two encodings"). Other `bytes`
+    // fields (NamedTensor.data) stay `Vec<u8>`.
+    config.bytes([".mapless.v1.TransitionBatch", ".mapless.v1.SampledBatch"]);
 
     tonic_prost_build::configure()
         .build_server(true)

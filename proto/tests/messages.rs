@@ -49,6 +49,7 @@ fn sampled_batch() -> SampledBatch {
         episode_id: t.episode_id,
         step: t.step,
         policy_version: t.policy_version,
+        ..SampledBatch::default()
     }
 }
 

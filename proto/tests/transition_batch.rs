@@ -1,8 +1,9 @@
 //! Behaviour of TransitionBatch building, encoding and validation.
 
-use mapless_proto::v1::{ProtocolVersion, TransitionBatch};
-use mapless_proto::{ProtoError, Transition, TransitionBatchBuilder};
+use mapless_proto::v1::{ProtocolVersion, SampledBatch, TransitionBatch};
+use mapless_proto::{FloatColumn, FloatEncoding, ProtoError, Transition, TransitionBatchBuilder};
 use prost::Message;
+use prost::bytes::Bytes;
 use tonic::Code;
 
 const OBS_DIM: usize = 3;
@@ -367,4 +368,140 @@ fn proto_error_converts_into_tonic_status() {
         Ok(())
     );
     assert_eq!(mapless_proto::PROTOCOL_VERSION, ProtocolVersion::V1 as u32);
+}
+
+/// `valid_batch()` with every float column as `*_f32le` bytes.
+fn bytes_batch() -> TransitionBatch {
+    let mut batch = valid_batch();
+    batch.convert_float_columns(FloatEncoding::F32Le);
+    batch
+}
+
+#[test]
+fn float_columns_as_bytes_round_trip_and_read_like_packed_ones() {
+    let packed = valid_batch();
+    let batch = bytes_batch();
+    assert!(batch.obs.is_empty() && batch.action.is_empty() && batch.reward.is_empty() && batch.next_obs.is_empty());
+    assert_eq!(batch.obs_f32le.len(), 4 * packed.obs.len());
+
+    let decoded = TransitionBatch::decode(batch.encode_to_vec().as_slice()).expect("decodes");
+    assert_eq!(decoded, batch);
+    assert_eq!(validate(&decoded), Ok(5));
+    assert_eq!(decoded.obs_column().encoding(), FloatEncoding::F32Le);
+    assert_eq!(decoded.obs_values().as_ref(), &packed.obs[..]);
+    assert_eq!(decoded.action_values().as_ref(), &packed.action[..]);
+    assert_eq!(decoded.reward_values().as_ref(), &packed.reward[..]);
+    assert_eq!(decoded.next_obs_values().as_ref(), &packed.next_obs[..]);
+    assert_eq!(packed.obs_column(), FloatColumn::Packed(&packed.obs));
+
+    // Rows borrow packed floats: none from bytes columns, all after converting back.
+    assert_eq!(decoded.row(0), None);
+    let mut back = decoded.clone();
+    back.convert_float_columns(FloatEncoding::Packed);
+    assert_eq!(back, packed);
+    assert_eq!(back.iter_rows().count(), 5);
+}
+
+#[test]
+fn encode_f32le_writes_what_converting_then_encoding_writes() {
+    let packed = valid_batch();
+    let converted = bytes_batch();
+    let mut direct = Vec::new();
+    packed.encode_f32le(&mut direct);
+    assert_eq!(direct, converted.encode_to_vec(), "from packed columns");
+    assert_eq!(direct.len(), packed.encoded_len_f32le());
+    let mut again = Vec::new();
+    converted.encode_f32le(&mut again);
+    assert_eq!(again, direct, "from bytes columns");
+
+    let mut sampled = SampledBatch {
+        protocol_version: ProtocolVersion::V1 as i32,
+        obs_dim: OBS_DIM as u32,
+        act_dim: ACT_DIM as u32,
+        num_rows: 5,
+        table_size: 9,
+        keys: (0..5).collect(),
+        probabilities: vec![0.2; 5],
+        importance_weights: vec![1.0; 5],
+        obs: packed.obs.clone(),
+        action: packed.action.clone(),
+        reward: packed.reward.clone(),
+        next_obs: packed.next_obs.clone(),
+        terminal: packed.terminal.clone(),
+        truncated: packed.truncated.clone(),
+        episode_id: packed.episode_id.clone(),
+        step: packed.step.clone(),
+        policy_version: packed.policy_version.clone(),
+        ..SampledBatch::default()
+    };
+    let mut direct = Vec::new();
+    sampled.encode_f32le(&mut direct);
+    sampled.convert_float_columns(FloatEncoding::F32Le);
+    assert_eq!(direct, sampled.encode_to_vec());
+    let decoded = SampledBatch::decode(direct.as_slice()).expect("decodes");
+    assert_eq!(decoded.validate(OBS_DIM, ACT_DIM, MAX_ROWS), Ok(5));
+    assert_eq!(decoded.next_obs_values().as_ref(), &packed.next_obs[..]);
+}
+
+#[test]
+fn bytes_columns_decoded_from_a_buffer_borrow_it() {
+    let batch = bytes_batch();
+    let wire = Bytes::from(batch.encode_to_vec());
+    let decoded = TransitionBatch::decode(wire.clone()).expect("decodes");
+    let range = wire.as_ptr() as usize..wire.as_ptr() as usize + wire.len();
+    for column in [&decoded.obs_f32le, &decoded.action_f32le, &decoded.reward_f32le, &decoded.next_obs_f32le] {
+        assert!(range.contains(&(column.as_ptr() as usize)), "a column was copied out of the buffer");
+    }
+}
+
+#[test]
+fn validate_refuses_malformed_bytes_columns_naming_them() {
+    fn invalid(field: &'static str) -> impl Fn(ProtoError) {
+        move |err: ProtoError| {
+            assert!(matches!(&err, ProtoError::InvalidField { field: f, .. } if *f == field), "{err:?}");
+            assert_eq!(err.to_status().code(), Code::InvalidArgument);
+            assert!(err.to_status().message().contains(field));
+        }
+    }
+
+    let mut ragged = bytes_batch();
+    ragged.obs_f32le = ragged.obs_f32le.slice(..ragged.obs_f32le.len() - 2);
+    invalid("obs_f32le")(validate(&ragged).unwrap_err());
+
+    let mut both = bytes_batch();
+    both.action = vec![0.0; 5 * ACT_DIM];
+    invalid("action_f32le")(validate(&both).unwrap_err());
+
+    let mut short = bytes_batch();
+    short.next_obs_f32le = short.next_obs_f32le.slice(4..);
+    assert_eq!(
+        validate(&short),
+        Err(ProtoError::ColumnLength { column: "next_obs_f32le", expected: 5 * OBS_DIM as u64, got: 5 * OBS_DIM as u64 - 1 })
+    );
+
+    let mut missing = bytes_batch();
+    missing.reward_f32le = Bytes::new();
+    assert_eq!(validate(&missing), Err(ProtoError::ColumnLength { column: "reward", expected: 5, got: 0 }));
+
+    let mut inf = bytes_batch();
+    let mut obs = inf.obs_f32le.to_vec();
+    let at = 2 * OBS_DIM + 1; // row 2, element 1
+    obs[4 * at..4 * at + 4].copy_from_slice(&f32::NEG_INFINITY.to_le_bytes());
+    inf.obs_f32le = obs.into();
+    let err = validate(&inf).unwrap_err();
+    assert!(
+        matches!(err, ProtoError::NonFinite { column: "obs_f32le", row: 2, element: 1, value } if value == f64::NEG_INFINITY),
+        "{err:?}"
+    );
+}
+
+#[test]
+fn a_batch_may_mix_encodings_across_columns() {
+    let packed = valid_batch();
+    let mut mixed = packed.clone();
+    mixed.obs_f32le = mapless_proto::f32le_bytes(&mixed.obs);
+    mixed.obs = Vec::new();
+    assert_eq!(validate(&mixed), Ok(5));
+    assert_eq!(mixed.obs_values().as_ref(), &packed.obs[..]);
+    assert_eq!(mixed.reward_column(), FloatColumn::Packed(&packed.reward));
 }

@@ -1,6 +1,10 @@
 //! Measurements behind `mapless bench replay`: ingest rate over gRPC with concurrent writers,
 //! minibatch rate and latency of the sample stream, and resident memory of a full table.
 //! Each function starts what it measures in-process on loopback and tears it down.
+//!
+//! Writers send their float columns as `bytes *_f32le` fields (the shm writer always does;
+//! the gRPC writers' batches are built that way), and the sample stream asks for them
+//! (`float_columns_as_bytes`): the fast encoding of transition.proto, "Two encodings".
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -8,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{ProtocolVersion, SampleRequest, TransitionBatch};
-use mapless_proto::{MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
+use mapless_proto::{FloatEncoding, MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 
@@ -31,7 +35,8 @@ pub fn bench_table(capacity: usize, obs_dim: usize) -> Result<Table, ReplayError
     Table::new(cfg, 1)
 }
 
-/// A batch of `rows` plausible transitions for `actor`.
+/// A batch of `rows` plausible transitions for `actor`, float columns as `*_f32le` bytes
+/// (so clones share them, as an actor resending a batch would).
 pub fn synthetic_batch(actor: &str, seq: u64, rows: usize, obs_dim: usize) -> TransitionBatch {
     let mut b = TransitionBatchBuilder::with_capacity(obs_dim, 2, rows);
     let obs: Vec<f32> = (0..obs_dim).map(|k| (k as f32 * 0.37).sin()).collect();
@@ -39,7 +44,9 @@ pub fn synthetic_batch(actor: &str, seq: u64, rows: usize, obs_dim: usize) -> Tr
         let t = Transition { obs: &obs, action: &[0.5, -0.25], reward: 0.3, next_obs: &obs, terminal: false, truncated: r == rows - 1, episode_id: seq, step: r as u32, policy_version: 1 };
         b.push(t).expect("synthetic rows are valid");
     }
-    b.finish(actor, seq)
+    let mut batch = b.finish(actor, seq);
+    batch.convert_float_columns(FloatEncoding::F32Le);
+    batch
 }
 
 /// Inserts `rows` synthetic rows as actor "fill", `batch_rows` at a time.
@@ -128,7 +135,7 @@ pub struct SampleFigures {
 }
 
 /// Fills a table with `rows` rows, then reads minibatches of `batch` rows from one Sample
-/// stream with `prefetch` for about `duration`.
+/// stream with `prefetch` and `float_columns_as_bytes` for about `duration`.
 pub fn grpc_sample(rows: usize, obs_dim: usize, batch: u32, prefetch: u32, duration: Duration) -> SampleFigures {
     let rt = runtime();
     rt.block_on(async move {
@@ -141,7 +148,16 @@ pub fn grpc_sample(rows: usize, obs_dim: usize, batch: u32, prefetch: u32, durat
             let _ = stop_rx.await;
         }));
         let mut c = client(addr).await;
-        let req = SampleRequest { protocol_version: ProtocolVersion::V1 as i32, table: table.config().name.clone(), batch_size: batch, prefetch, timeout_ms: 5_000, max_batches: 0, importance_beta: 0.0 };
+        let req = SampleRequest {
+            protocol_version: ProtocolVersion::V1 as i32,
+            table: table.config().name.clone(),
+            batch_size: batch,
+            prefetch,
+            timeout_ms: 5_000,
+            max_batches: 0,
+            importance_beta: 0.0,
+            float_columns_as_bytes: true,
+        };
         let mut stream = c.sample(req).await.expect("sample stream").into_inner();
         // Warm-up.
         let warm = Instant::now();

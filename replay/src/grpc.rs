@@ -8,7 +8,9 @@
 //!     reading, and HTTP/2 flow control then blocks the client — the limiter is the one throttle)
 //!
 //!  Sample (server stream), one blocking producer per stream:
-//!    reserve slot in [minibatches, depth prefetch] ─► Table::sample (polled) ─► send ─► client
+//!    reserve slot in [minibatches, depth prefetch] ─► Table::sample_as (polled) ─► send ─► client
+//!    (float columns packed, or as `*_f32le` bytes when the request sets float_columns_as_bytes:
+//!     then encoding and the client's decoding are a memcpy per column)
 //!    (a slot is reserved before drawing, so at most `prefetch` drawn minibatches wait unread)
 //! ```
 //!
@@ -27,7 +29,7 @@ use mapless_proto::v1::{
     InsertAck, PriorityUpdate, PriorityUpdateResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse,
     TransitionBatch,
 };
-use mapless_proto::{MAX_ACTOR_ID_BYTES, MAX_MESSAGE_BYTES, check_protocol_version};
+use mapless_proto::{FloatEncoding, MAX_ACTOR_ID_BYTES, MAX_MESSAGE_BYTES, check_protocol_version};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
@@ -369,8 +371,9 @@ impl ReplayService for ReplayGrpc {
         self.check_table(&req.table)?;
         let rows = req.validate(self.table.config().max_sample_rows)?;
         let prefetch = req.prefetch.clamp(1, self.max_prefetch);
+        let floats = if req.float_columns_as_bytes { FloatEncoding::F32Le } else { FloatEncoding::Packed };
         let span = info_span!("Sample", table = %self.table.config().name, batch_size = rows, prefetch, max_batches = req.max_batches, peer = ?peer);
-        span.in_scope(|| info!(timeout_ms = req.timeout_ms, importance_beta = req.importance_beta, "sample stream opened"));
+        span.in_scope(|| info!(timeout_ms = req.timeout_ms, importance_beta = req.importance_beta, float_columns_as_bytes = req.float_columns_as_bytes, "sample stream opened"));
         let (tx, rx) = mpsc::channel(prefetch as usize);
         let table = Arc::clone(&self.table);
         let stop = self.stop_flag();
@@ -392,7 +395,7 @@ impl ReplayService for ReplayGrpc {
                 }
                 let deadline = (req.timeout_ms > 0).then(|| Instant::now() + Duration::from_millis(req.timeout_ms.into()));
                 let beta = Some(f64::from(req.importance_beta));
-                match wait_polled(deadline, || tx.is_closed() || stop.is_set(), |until| table.sample(rows, beta, until)) {
+                match wait_polled(deadline, || tx.is_closed() || stop.is_set(), |until| table.sample_as(rows, beta, until, floats)) {
                     Some(Ok(batch)) => {
                         permit.send(Ok(batch));
                         sent += 1;

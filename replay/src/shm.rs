@@ -20,12 +20,16 @@
 //! outstanding, which is also the server's buffer per writer, so no request is ever
 //! overwritten or dropped while both sides live.
 //!
-//! The payload is the same prost encoding as on the gRPC wire, decoded once, straight out of
-//! the writer's shared memory. A hand-made columnar layout could skip the decode, the largest
-//! server-side cost (about 40% of the ingest thread's time, which still reaches ~7 M rows/s on
-//! 2 cores; see `examples/shm_throughput.rs`), but [`Table::insert`] takes a
-//! [`TransitionBatch`], so the rows would be copied into one anyway, and the wire contract
-//! and its validation would exist twice.
+//! The payload is the same prost encoding as on the gRPC wire. [`ShmWriter`] always writes the
+//! float columns in their `bytes *_f32le` encoding ([`TransitionBatch::encode_f32le`], one
+//! memcpy per column, whatever encoding the caller's batch holds). The ingest thread copies
+//! the payload out of shared memory into a reused buffer, decodes it there (the float columns
+//! are borrowed from the buffer, not copied), validates, and the table copies each column
+//! into its storage with one memcpy; a persistent table logs the received bytes as they are.
+//! A packed-float payload (older writers, `send_encoded`) is accepted too; prost then decodes
+//! its floats one by one, which was the largest server-side cost for wide observations. A
+//! hand-made columnar layout would save the remaining copy out of shared memory, but the wire
+//! contract and its validation would then exist twice.
 //!
 //! # Delivery: at-least-once on the wire, exactly-once in the table
 //!
@@ -57,7 +61,7 @@
 //!
 //! Threading: [`ShmIngest`] owns two OS threads; [`ShmWriter`] is `Send` but not `Sync`
 //! (use one per actor). Neither side allocates per row: the writer encodes a batch once and
-//! copies it into shared memory, the server decodes it once.
+//! copies it into shared memory, the server copies it out once and decodes it in place.
 
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -77,6 +81,7 @@ use iceoryx2::service::port_factory::server::ServerCreateError;
 use mapless_proto::MAX_ACTOR_ID_BYTES;
 use mapless_proto::v1::{InsertAck, TransitionBatch};
 use prost::Message;
+use prost::bytes::{Bytes, BytesMut};
 use serde::{Deserialize, Serialize};
 
 use crate::error::ReplayError;
@@ -498,11 +503,16 @@ fn janitor(node: Node<ServerSvc>, scan: Duration, stop: &AtomicBool, counters: &
 struct Stalled {
     request: InsertRequest,
     batch: TransitionBatch,
+    /// The payload `batch` was decoded from (and borrows its float columns from).
+    payload: Bytes,
 }
 
 /// The ingest thread's state. Field order is drop order: requests before ports before node.
 struct Ingest {
     stalled: Option<Stalled>,
+    /// The payload buffer of the last batch, reused for the next one once nothing borrows it
+    /// (no allocation and no page faults per batch).
+    spare: BytesMut,
     server: InsertServer,
     service: RrFactory<ServerSvc, [u8], BatchHeader, WireAck, ()>,
     node: Node<ServerSvc>,
@@ -532,7 +542,7 @@ impl Ingest {
             ServerCreateError::ExceedsMaxSupportedServers => closed(&svc, "another live ShmIngest already serves this service"),
             e => closed(&svc, format!("cannot create the server port: {e:?}")),
         })?;
-        Ok(Ingest { stalled: None, server, service, node, table, cfg, counters, owners: HashMap::new() })
+        Ok(Ingest { stalled: None, spare: BytesMut::new(), server, service, node, table, cfg, counters, owners: HashMap::new() })
     }
 
     fn run(mut self, stop: &AtomicBool) {
@@ -550,7 +560,7 @@ impl Ingest {
                     tracing::debug!(actor_id = %s.batch.actor_id, sequence = s.batch.sequence, "writer of a rate-limited batch went away; dropped (it resends after reconnecting)");
                     continue;
                 }
-                self.insert(s.request, s.batch);
+                self.insert(s.request, s.batch, s.payload);
                 if self.stalled.is_some() {
                     continue; // still blocked; insert() already waited insert_wait_ms
                 }
@@ -605,10 +615,17 @@ impl Ingest {
             let why = format!("batch of {} bytes exceeds the shared-memory limit of {} bytes", payload.len(), self.cfg.max_payload_bytes);
             return self.reject(&request, &actor, header.sequence, &why);
         }
-        let batch = match TransitionBatch::decode(payload) {
+        // Out of shared memory into our own buffer (one memcpy), then decoded in place: the
+        // `bytes` float columns borrow from it.
+        let mut buf = std::mem::take(&mut self.spare);
+        buf.clear();
+        buf.extend_from_slice(payload);
+        let payload = buf.freeze();
+        let batch = match TransitionBatch::decode(payload.clone()) {
             Ok(b) => b,
             Err(e) => {
                 let why = format!("undecodable TransitionBatch ({} bytes): {e}", payload.len());
+                self.recycle(payload);
                 return self.reject(&request, &actor, header.sequence, &why);
             }
         };
@@ -617,9 +634,18 @@ impl Ingest {
                 "request header says actor `{actor}` sequence {}, the batch says actor `{}` sequence {}",
                 header.sequence, batch.actor_id, batch.sequence
             );
+            drop(batch);
+            self.recycle(payload);
             return self.reject(&request, &actor, header.sequence, &why);
         }
-        self.insert(request, batch);
+        self.insert(request, batch, payload);
+    }
+
+    /// Keeps a payload buffer for the next batch when nothing else holds it any more.
+    fn recycle(&mut self, payload: Bytes) {
+        if let Ok(buf) = payload.try_into_mut() {
+            self.spare = buf;
+        }
     }
 
     fn reject(&self, request: &InsertRequest, actor: &str, sequence: u64, why: &str) {
@@ -629,9 +655,18 @@ impl Ingest {
     }
 
     /// Inserts with a deadline; on a rate-limiter timeout keeps the request in `stalled`.
-    fn insert(&mut self, request: InsertRequest, batch: TransitionBatch) {
+    fn insert(&mut self, request: InsertRequest, mut batch: TransitionBatch, payload: Bytes) {
         let deadline = Instant::now() + Duration::from_millis(self.cfg.insert_wait_ms);
-        match self.table.insert(&batch, Some(deadline)) {
+        let result = self.table.insert_encoded(&batch, Some(&payload), Some(deadline));
+        if let Err(ReplayError::DeadlineExceeded { .. }) = result {
+            self.counters.insert_stalls.fetch_add(1, Ordering::Relaxed);
+            self.stalled = Some(Stalled { request, batch, payload });
+            return;
+        }
+        let (sequence, actor_id) = (batch.sequence, std::mem::take(&mut batch.actor_id));
+        drop(batch); // releases the borrowed float columns, so the buffer can be reused
+        self.recycle(payload);
+        match result {
             Ok(ack) => {
                 let c = &self.counters;
                 if ack.duplicate {
@@ -642,18 +677,14 @@ impl Ingest {
                 }
                 respond(&request, WireAck::stored(&ack));
             }
-            Err(ReplayError::DeadlineExceeded { .. }) => {
-                self.counters.insert_stalls.fetch_add(1, Ordering::Relaxed);
-                self.stalled = Some(Stalled { request, batch });
-            }
             Err(e @ (ReplayError::Invalid(_) | ReplayError::BadRequest(_))) => {
                 // The table has already counted it against the actor.
                 self.counters.rejected_batches.fetch_add(1, Ordering::Relaxed);
-                respond(&request, WireAck::failed(batch.sequence, CODE_INVALID, &e.to_string()));
+                respond(&request, WireAck::failed(sequence, CODE_INVALID, &e.to_string()));
             }
             Err(e) => {
-                tracing::warn!(actor_id = %batch.actor_id, sequence = batch.sequence, error = %e, "shm insert failed");
-                respond(&request, WireAck::failed(batch.sequence, CODE_UNAVAILABLE, &e.to_string()));
+                tracing::warn!(actor_id = %actor_id, sequence, error = %e, "shm insert failed");
+                respond(&request, WireAck::failed(sequence, CODE_UNAVAILABLE, &e.to_string()));
             }
         }
     }
@@ -929,7 +960,9 @@ impl ShmWriter {
         if batch.actor_id != self.actor_id {
             return Err(ReplayError::BadRequest(format!("batch is for actor `{}`, this writer writes `{}`", batch.actor_id, self.actor_id)));
         }
-        let len = batch.encoded_len();
+        // Float columns as `bytes *_f32le` fields: a memcpy each here, and decoded in place
+        // by the ingest, whichever encoding `batch` holds them in.
+        let len = batch.encoded_len_f32le();
         if len > self.cfg.max_payload_bytes {
             return Err(ReplayError::BadRequest(format!(
                 "batch of {} rows encodes to {len} bytes, above the shared-memory limit shm.max_payload_bytes = {}; send smaller batches",
@@ -937,7 +970,7 @@ impl ShmWriter {
             )));
         }
         let mut bytes = Vec::with_capacity(len);
-        batch.encode(&mut bytes).map_err(|e| ReplayError::BadRequest(format!("cannot encode the batch: {e}")))?;
+        batch.encode_f32le(&mut bytes);
         self.send_encoded(batch.sequence, bytes)
     }
 

@@ -13,7 +13,7 @@
 //! ```
 //!
 //! Meta: LSN, next key, rate-limiter counters, largest priority weight, per-actor statistics
-//! (de-duplication marks) and the table's shape. Per slot: the sum-tree weight, whether the
+//! (de-duplication marks), the sampler's random-number generator and the table's shape. Per slot: the sum-tree weight, whether the
 //! slot is live, and how often it was sampled.
 //!
 //! What a crash costs: inserts and priority updates are logged, so they come back exactly.
@@ -27,6 +27,7 @@ use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use rand_pcg::Pcg64Mcg;
 use serde::{Deserialize, Serialize};
 
 use crate::config::SamplerConfig;
@@ -66,6 +67,11 @@ pub(crate) struct SnapshotMeta {
     pub size: u64,
     pub created_unix_ms: u64,
     pub actors: BTreeMap<String, ActorStats>,
+    /// The sampler's random-number generator, so that a restored table draws the minibatches
+    /// the running one would have drawn next. Absent in snapshots of older builds (the
+    /// stream then restarts from the table's seed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sampler_rng: Option<Pcg64Mcg>,
 }
 
 /// A snapshot in memory: meta plus one entry per slot.
@@ -274,6 +280,7 @@ mod tests {
                 size: 3,
                 created_unix_ms: 1,
                 actors,
+                sampler_rng: Some(rand::SeedableRng::seed_from_u64(3)),
             },
             weights: vec![1.0, 0.0, 1.5],
             live: vec![true, false, true],

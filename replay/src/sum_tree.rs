@@ -44,6 +44,28 @@ impl SumTree {
         }
     }
 
+    /// Sets slots `start..end` to `weight` (≥ 0, finite) and recomputes their ancestors level
+    /// by level: O((end − start) + log n) instead of O((end − start) · log n) for one `set` per
+    /// slot, with the same result (every sum is recomputed from its children). Does nothing
+    /// when every slot already has that weight. `end` ≤ capacity.
+    pub fn set_range(&mut self, start: usize, end: usize, weight: f64) {
+        debug_assert!(weight >= 0.0 && weight.is_finite());
+        debug_assert!(start <= end && end <= self.size);
+        let leaves = &mut self.nodes[self.size + start..self.size + end];
+        if leaves.iter().all(|&w| w == weight) {
+            return;
+        }
+        leaves.fill(weight);
+        let (mut lo, mut hi) = (self.size + start, self.size + end - 1);
+        while lo > 1 {
+            lo /= 2;
+            hi /= 2;
+            for i in lo..=hi {
+                self.nodes[i] = self.nodes[2 * i] + self.nodes[2 * i + 1];
+            }
+        }
+    }
+
     /// The slot whose cumulative-weight interval holds `u` (0 ≤ u < total). Never returns a
     /// zero-weight slot while the total is positive.
     pub fn find(&self, mut u: f64) -> usize {
@@ -90,6 +112,19 @@ mod tests {
         t.set(4, 0.0);
         assert_eq!(t.total(), 6.0);
         assert_eq!(t.find(5.99), 3);
+    }
+
+    #[test]
+    fn range_updates_give_exactly_the_tree_of_single_updates() {
+        let mut one = SumTree::new(37);
+        let mut range = SumTree::new(37);
+        for (start, end, w) in [(0, 37, 1.0), (5, 9, 0.25), (30, 37, 3.5), (0, 1, 0.0), (12, 12, 9.0), (8, 33, 1.0 / 3.0)] {
+            for slot in start..end {
+                one.set(slot, w);
+            }
+            range.set_range(start, end, w);
+            assert_eq!(one.nodes, range.nodes, "after {start}..{end} = {w}");
+        }
     }
 
     #[test]

@@ -141,7 +141,7 @@ async fn kill_9_mid_stream_loses_no_acknowledged_batch_and_resends_insert_nothin
 
     // And the rows are the ones sent: sample the table and check identities.
     let mut s = client
-        .sample(SampleRequest { protocol_version: ProtocolVersion::V1 as i32, table: after.table.clone(), batch_size: 1000, prefetch: 2, timeout_ms: 5000, max_batches: 5, importance_beta: 0.0 })
+        .sample(SampleRequest { protocol_version: ProtocolVersion::V1 as i32, table: after.table.clone(), batch_size: 1000, prefetch: 2, timeout_ms: 5000, max_batches: 5, importance_beta: 0.0, float_columns_as_bytes: false })
         .await
         .expect("sample")
         .into_inner();

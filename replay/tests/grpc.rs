@@ -14,7 +14,7 @@ use mapless_proto::v1::{
     InsertAck, PriorityUpdate, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest, ServerInfoResponse,
     TransitionBatch,
 };
-use mapless_proto::{MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
+use mapless_proto::{FloatEncoding, MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
 use mapless_replay::server::{ServeOptions, Security, ServerError, TlsPem, run, serve};
 use mapless_replay::{RateLimiterConfig, SamplerConfig, Table, TableConfig, metrics};
 use tokio::net::TcpListener;
@@ -184,7 +184,7 @@ fn health(info: &ServerInfoResponse, _table: &Table, actor: &str) -> (u64, Strin
 }
 
 fn sample_request(batch_size: u32) -> SampleRequest {
-    SampleRequest { protocol_version: V1, table: String::new(), batch_size, prefetch: 1, timeout_ms: 5_000, max_batches: 1, importance_beta: 0.0 }
+    SampleRequest { protocol_version: V1, table: String::new(), batch_size, prefetch: 1, timeout_ms: 5_000, max_batches: 1, importance_beta: 0.0, float_columns_as_bytes: false }
 }
 
 async fn sample_all(client: &mut ReplayServiceClient<Channel>, req: SampleRequest) -> (Vec<SampledBatch>, Option<Status>) {
@@ -265,6 +265,57 @@ async fn sample_stream_with_prefetch_delivers_columnar_minibatches_of_inserted_r
         }
     }
     assert_eq!(h.table.info().samples_total, 80);
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn float_columns_as_bytes_are_accepted_on_insert_and_sent_on_request() {
+    let h = Harness::start(table_cfg(1000)).await;
+    let mut client = h.client().await;
+    let mut bytes_batch = batch("actor-b", 1, 0.0, 30);
+    bytes_batch.convert_float_columns(FloatEncoding::F32Le);
+    // An old-style packed batch and a bytes one on the same stream.
+    let (acks, end) = insert_all(&mut client, vec![bytes_batch, batch("actor-b", 2, 30.0, 30)]).await;
+    assert!(end.is_none(), "{end:?}");
+    assert_eq!(acks.iter().map(|a| a.accepted_rows).collect::<Vec<_>>(), vec![30, 30]);
+
+    for as_bytes in [false, true] {
+        let req = SampleRequest { batch_size: 20, max_batches: 3, float_columns_as_bytes: as_bytes, ..sample_request(20) };
+        let (batches, end) = sample_all(&mut client, req).await;
+        assert!(end.is_none(), "{end:?}");
+        assert_eq!(batches.len(), 3);
+        for b in batches {
+            assert_eq!(b.validate(OBS, ACT, 100), Ok(20));
+            let want = if as_bytes { FloatEncoding::F32Le } else { FloatEncoding::Packed };
+            for column in [b.obs_column(), b.action_column(), b.reward_column(), b.next_obs_column()] {
+                assert_eq!(column.encoding(), want);
+            }
+            let (obs, action, reward, next_obs) = (b.obs_values(), b.action_values(), b.reward_values(), b.next_obs_values());
+            for (i, &v) in reward.iter().enumerate() {
+                assert!((0.0..60.0).contains(&v) && v.fract() == 0.0, "reward {v} was inserted");
+                let (o, a, n) = row_of(v);
+                assert_eq!((&obs[i * OBS..(i + 1) * OBS], &action[i * ACT..(i + 1) * ACT], &next_obs[i * OBS..(i + 1) * OBS]), (&o[..], &a[..], &n[..]));
+            }
+        }
+    }
+
+    // Malformed bytes columns end the stream with INVALID_ARGUMENT naming the field, and are
+    // counted against the actor.
+    let mut ragged = batch("actor-b", 3, 0.0, 3);
+    ragged.convert_float_columns(FloatEncoding::F32Le);
+    ragged.obs_f32le = ragged.obs_f32le.slice(..ragged.obs_f32le.len() - 3);
+    let mut doubled = batch("actor-b", 3, 0.0, 3);
+    doubled.next_obs_f32le = mapless_proto::f32le_bytes(&doubled.next_obs); // and next_obs
+    for (bad, field) in [(ragged, "obs_f32le"), (doubled, "next_obs_f32le")] {
+        let (acks, end) = insert_all(&mut client, vec![bad]).await;
+        assert!(acks.is_empty());
+        let status = end.expect("refused");
+        assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+        assert!(status.message().contains(field), "{}", status.message());
+    }
+    let info = info(&mut client).await;
+    assert_eq!(health(&info, &h.table, "actor-b").0, 2);
+    assert_eq!(info.size, 60);
     h.shutdown().await;
 }
 

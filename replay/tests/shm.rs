@@ -18,6 +18,7 @@ use std::sync::mpsc::{Receiver, channel};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant};
 
+use mapless_proto::FloatEncoding;
 use mapless_replay::shm::{Ack, ShmConfig, ShmIngest, ShmWriter};
 use mapless_replay::{RateLimiterConfig, ReplayError, Table, TableConfig};
 use prost::Message;
@@ -403,6 +404,11 @@ fn malformed_and_invalid_payloads_are_counted_as_rejected_and_the_ingest_keeps_s
     w.send(&synthetic_batch("m", 5, 4, OBS + 1)).unwrap();
     // 6: valid again.
     w.send(&synthetic_batch("m", 6, 4, OBS)).unwrap();
+    // 7: rewards as bytes that are not a whole number of floats.
+    let mut ragged = synthetic_batch("m", 7, 4, OBS);
+    ragged.convert_float_columns(FloatEncoding::F32Le);
+    ragged.reward_f32le = ragged.reward_f32le.slice(..15);
+    w.send(&ragged).unwrap();
     let acks = w.wait_acks(in_secs(20)).unwrap();
     let summary: Vec<_> = acks
         .iter()
@@ -411,17 +417,18 @@ fn malformed_and_invalid_payloads_are_counted_as_rejected_and_the_ingest_keeps_s
             Ack::Rejected { sequence, reason } => (*sequence, reason.clone()),
         })
         .collect();
-    assert_eq!(summary.len(), 6, "{summary:?}");
+    assert_eq!(summary.len(), 7, "{summary:?}");
     assert!(summary[0].1.contains("undecodable"), "{summary:?}");
     assert!(summary[1].1.contains("obs"), "{summary:?}");
     assert_eq!(summary[2].1, "stored 4");
     assert!(summary[3].1.contains("someone-else"), "{summary:?}");
     assert!(summary[4].1.contains("obs_dim") || summary[4].1.contains("18"), "{summary:?}");
     assert_eq!(summary[5].1, "stored 4");
+    assert!(summary[6].1.contains("reward_f32le") && summary[6].1.contains("15 bytes"), "{summary:?}");
     assert_eq!(t.size(), 8);
     let m = &t.actors()["m"];
-    assert_eq!((m.batches, m.rejected_batches), (2, 4));
-    assert_eq!(ingest.stats().rejected_batches, 4);
+    assert_eq!((m.batches, m.rejected_batches), (2, 5));
+    assert_eq!(ingest.stats().rejected_batches, 5);
     ingest.stop();
 }
 

@@ -33,9 +33,9 @@ impl ProtocolVersion {
 ///
 /// Why columnar: a row-per-message layout costs a tag and a length prefix per transition and
 /// per vector, and forces the receiver to gather vectors before it can copy them into a tensor.
-/// Here every float column is one packed array that decodes with a single copy into a
-/// contiguous buffer of shape \[num_rows, dim\], which is the layout the replay table and the
-/// learner's tensors use.
+/// Here every float column is one contiguous array (in either encoding below) that decodes
+/// with a single copy into a contiguous buffer of shape \[num_rows, dim\], which is the layout
+/// the replay table and the learner's tensors use.
 ///
 /// Row i is the transition (s_t, a_t, r\_{t+1}, s\_{t+1}) of one vehicle:
 ///
@@ -46,6 +46,19 @@ impl ProtocolVersion {
 /// * next_obs\[i\*obs_dim .. (i+1)\*obs_dim\] is s\_{t+1}, the observation after the step. It is
 ///   present and finite on every row, also on terminal rows, where the learner masks it out.
 ///
+/// Two encodings of the float columns. Each of obs, action, reward and next_obs travels either
+/// as its `repeated float` field (packed; the default, what every protobuf library writes
+/// naturally) or as its `bytes *_f32le` twin (fields 16-19): the same floats, row-major, as
+/// IEEE-754 binary32 little-endian, 4 bytes each, concatenated. Both put the same bytes on
+/// the wire after the field's tag and length, but protobuf libraries decode a packed float
+/// array value by value, while a `bytes` field is one memcpy (or none, where the library can
+/// borrow it from the receive buffer, as prost's `Bytes` fields do), which matters for wide
+/// observations (a 203-float observation makes a 256-row batch about 420 KB). A sender fills
+/// exactly one encoding per column and may mix them across columns; a receiver accepts
+/// either. Clients that only know the packed fields keep working unchanged: the replay server
+/// accepts them, and sends `bytes` columns only to a client that asks
+/// (SampleRequest.float_columns_as_bytes).
+///
 /// Invariants (checked by the receiver; `TransitionBatch::validate` in the Rust crate):
 ///
 /// * protocol_version is a version the receiver speaks, else FAILED_PRECONDITION;
@@ -54,8 +67,11 @@ impl ProtocolVersion {
 ///   INVALID_ARGUMENT;
 /// * 0 \< num_rows, else INVALID_ARGUMENT; num_rows \<= the receiver's row limit, else
 ///   RESOURCE_EXHAUSTED;
-/// * every column has exactly its stated length (num_rows * dim or num_rows), else
-///   INVALID_ARGUMENT naming the column;
+/// * each float column is set in at most one encoding (not both `obs` and `obs_f32le`), else
+///   INVALID_ARGUMENT naming the `_f32le` field; a `_f32le` field's length is a multiple of
+///   4 bytes, else INVALID_ARGUMENT naming it;
+/// * every column has exactly its stated length (num_rows * dim or num_rows values, whichever
+///   encoding carries it), else INVALID_ARGUMENT naming the column;
 /// * every float is finite (no NaN, no +-Inf), else INVALID_ARGUMENT naming column and row;
 /// * no row has both terminal and truncated set, else INVALID_ARGUMENT naming the row.
 ///
@@ -131,6 +147,20 @@ pub struct TransitionBatch {
     /// measure policy lag and the replay server report it. N values, packed.
     #[prost(uint64, repeated, tag = "15")]
     pub policy_version: ::prost::alloc::vec::Vec<u64>,
+    /// `obs` as little-endian binary32 bytes: N * obs_dim * 4 bytes, row-major. Set this or
+    /// `obs`, not both (see "Two encodings" above).
+    #[prost(bytes = "bytes", tag = "16")]
+    pub obs_f32le: ::prost::bytes::Bytes,
+    /// `action` as little-endian binary32 bytes: N * act_dim * 4 bytes. Set this or `action`.
+    #[prost(bytes = "bytes", tag = "17")]
+    pub action_f32le: ::prost::bytes::Bytes,
+    /// `reward` as little-endian binary32 bytes: N * 4 bytes. Set this or `reward`.
+    #[prost(bytes = "bytes", tag = "18")]
+    pub reward_f32le: ::prost::bytes::Bytes,
+    /// `next_obs` as little-endian binary32 bytes: N * obs_dim * 4 bytes, row-major. Set this or
+    /// `next_obs`.
+    #[prost(bytes = "bytes", tag = "19")]
+    pub next_obs_f32le: ::prost::bytes::Bytes,
 }
 /// Acknowledges one TransitionBatch of an Insert stream, after it is durable.
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
@@ -185,8 +215,19 @@ pub struct SampleRequest {
     /// `table_size` instead of reopening the stream.
     #[prost(float, tag = "7")]
     pub importance_beta: f32,
+    /// When true, the server sends the float columns of every SampledBatch (obs, action,
+    /// reward, next_obs) in their `bytes *_f32le` encoding instead of the packed
+    /// `repeated float` fields: the same floats, little-endian binary32, which a client decodes
+    /// with one copy (see TransitionBatch, "Two encodings"). Default false: the packed fields,
+    /// which every client reads. importance_weights and probabilities stay packed either way.
+    #[prost(bool, tag = "8")]
+    pub float_columns_as_bytes: bool,
 }
 /// One minibatch of a Sample stream: batch_size rows in the layout of TransitionBatch.
+///
+/// Each of obs, action, reward and next_obs is set in exactly one encoding: the packed
+/// `repeated float` field, or, when the SampleRequest set float_columns_as_bytes, its
+/// `bytes *_f32le` twin (fields 19-22; little-endian binary32, as in TransitionBatch).
 ///
 /// Rows are drawn independently (with replacement) by the table's selector, so one key can
 /// occur more than once in a minibatch. Rows come from many actors; per-row provenance is
@@ -252,6 +293,22 @@ pub struct SampledBatch {
     /// Per row: weights version that chose the action. As in TransitionBatch.policy_version.
     #[prost(uint64, repeated, tag = "18")]
     pub policy_version: ::prost::alloc::vec::Vec<u64>,
+    /// `obs` as little-endian binary32 bytes (num_rows * obs_dim * 4 bytes, row-major); set
+    /// instead of `obs` when SampleRequest.float_columns_as_bytes.
+    #[prost(bytes = "bytes", tag = "19")]
+    pub obs_f32le: ::prost::bytes::Bytes,
+    /// `action` as little-endian binary32 bytes (num_rows * act_dim * 4 bytes); set instead of
+    /// `action` when SampleRequest.float_columns_as_bytes.
+    #[prost(bytes = "bytes", tag = "20")]
+    pub action_f32le: ::prost::bytes::Bytes,
+    /// `reward` as little-endian binary32 bytes (num_rows * 4 bytes); set instead of `reward`
+    /// when SampleRequest.float_columns_as_bytes.
+    #[prost(bytes = "bytes", tag = "21")]
+    pub reward_f32le: ::prost::bytes::Bytes,
+    /// `next_obs` as little-endian binary32 bytes (num_rows * obs_dim * 4 bytes, row-major); set
+    /// instead of `next_obs` when SampleRequest.float_columns_as_bytes.
+    #[prost(bytes = "bytes", tag = "22")]
+    pub next_obs_f32le: ::prost::bytes::Bytes,
 }
 /// New priorities for rows of a prioritized table, typically |TD error| + epsilon.
 #[derive(Clone, PartialEq, ::prost::Message)]

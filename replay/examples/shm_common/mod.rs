@@ -27,6 +27,7 @@ pub fn synthetic_batch(actor: &str, sequence: u64, rows: usize, obs_dim: usize) 
         episode_id: vec![1; rows],
         step: (0..rows as u32).collect(),
         policy_version: vec![sequence; rows],
+        ..TransitionBatch::default()
     }
 }
 

@@ -1,0 +1,22 @@
+//! `mapless-actor` — the acting side of the cluster, without libtorch.
+//!
+//! - [`policy`]: the learner's published policy network ([`mapless_proto::v1::WeightsSnapshot`],
+//!   safetensors naming) evaluated in pure Rust for all of a process's vehicles at once;
+//! - [`noise`]: exploration noise for the deterministic policies (OU for DDPG, Gaussian for TD3).
+
+pub mod noise;
+pub mod policy;
+
+pub use noise::{Noise, NoiseConfig};
+pub use policy::{ActMode, Head, Policy};
+
+/// Everything an actor can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum ActorError {
+    /// Published weights that this actor cannot use (missing tensor, wrong shape, ...).
+    #[error("unusable policy weights: {0}")]
+    BadWeights(String),
+    /// Inputs of the wrong size or with non-finite values.
+    #[error("wrong input: {0}")]
+    Dimension(String),
+}

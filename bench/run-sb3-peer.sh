@@ -1,0 +1,93 @@
+#!/usr/bin/env bash
+# Side-by-side: `mapless bench learner` vs Stable-Baselines3 (and a CleanRL-style copy) SAC/TD3/DDPG
+# gradient updates per second on CPU with 1 and 2 threads, the paper's sizes (obs 17, act 2,
+# 2x256 hidden, batch 128). Idempotent; run from anywhere. See bench/sb3_peer.py for what is timed.
+#   SECONDS_PER_CONFIG=5 (timed seconds per algorithm and thread count, both sides)
+#   THREADS="1 2" (peer thread counts)   PEER_ONLY=1 (skip building/running ours)
+#   RUN_PREFIX="chrt -f 10" (prefix for both measured commands; on a shared machine, as root,
+#     real-time priority gives both sides near-exclusive cores; nice does not help across cgroups)
+#   Extra arguments go to sb3_peer.py (e.g. --impls sb3 --algos sac).
+set -euo pipefail
+
+BENCH_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+ROOT="$(dirname "$BENCH_DIR")"
+SB3_DIR="$BENCH_DIR/.sb3"   # git-ignored (bench/.gitignore)
+OUT="$BENCH_DIR/out"
+SECS="${SECONDS_PER_CONFIG:-5}"
+THREADS="${THREADS:-1 2}"
+read -r -a THREAD_LIST <<< "$THREADS"
+read -r -a PREFIX <<< "${RUN_PREFIX:-}"
+# Pure-Python wheels plus numpy, installed with --no-deps next to the repository's torch 2.13.0
+# (.torch/venv, from scripts/setup-torch.sh), so torch is never downloaded twice. This is the
+# complete runtime set for SB3's SAC/TD3/DDPG (typing_extensions comes with torch).
+PINS=(stable-baselines3==2.9.2 gymnasium==1.4.0 cloudpickle==3.1.2 farama-notifications==0.0.6 numpy==2.2.6)
+
+# 1. torch (shared with the learner's build), then the peer's packages in bench/.sb3.
+PY="$ROOT/.torch/venv/bin/python"
+if [[ ! -x "$PY" ]]; then
+    "$ROOT/scripts/setup-torch.sh"
+fi
+if [[ "$(cat "$SB3_DIR/.pins" 2>/dev/null)" != "${PINS[*]}" ]]; then
+    rm -rf "$SB3_DIR"
+    "$PY" -m pip install --quiet --disable-pip-version-check --no-deps --target "$SB3_DIR" "${PINS[@]}"
+    echo "${PINS[*]}" > "$SB3_DIR/.pins"
+fi
+export PYTHONPATH="$SB3_DIR${PYTHONPATH:+:$PYTHONPATH}"
+mkdir -p "$OUT"
+
+# 2. Our CLI, if it has `bench learner` (guarded: the learner bench may not exist yet).
+MAPLESS="$ROOT/target/release/mapless"
+HAVE_OURS=0
+if [[ "${PEER_ONLY:-0}" != 1 ]]; then
+    if cargo build --release --quiet -p mapless-cli --manifest-path "$ROOT/Cargo.toml" \
+        && "$MAPLESS" bench learner --help > /dev/null 2>&1; then
+        HAVE_OURS=1
+    else
+        echo "== ours: skipped (no \`mapless bench learner\` subcommand in this build)" >&2
+    fi
+fi
+
+# 3. Both measurements, one after the other so they never share the cores.
+echo "== load: $(uptime)"
+echo "== peer: PYTHONPATH=$SB3_DIR ${PREFIX[*]} $PY $BENCH_DIR/sb3_peer.py --seconds $SECS --threads $THREADS $*"
+${PREFIX[@]+"${PREFIX[@]}"} "$PY" "$BENCH_DIR/sb3_peer.py" --seconds "$SECS" --threads "${THREAD_LIST[@]}" "$@" | tee "$OUT/sb3-peer.jsonl"
+if [[ "$HAVE_OURS" == 1 ]]; then
+    # The subcommand itself covers 1 and 2 threads (issue 4); pass --seconds when it has one.
+    OURS_ARGS=(--json)
+    if "$MAPLESS" bench learner --help 2>&1 | grep -q -- '--seconds'; then
+        OURS_ARGS+=(--seconds "$SECS")
+    fi
+    echo "== ours: ${PREFIX[*]} $MAPLESS bench learner ${OURS_ARGS[*]}"
+    ${PREFIX[@]+"${PREFIX[@]}"} "$MAPLESS" bench learner "${OURS_ARGS[@]}" | tee "$OUT/learner-ours.jsonl"
+fi
+echo "== load: $(uptime)"
+
+# 4. The comparison, matched by (algorithm, threads). Accepts flat lines or the CLI's
+#    {"bench", "config": {...}, "value", "unit"} shape.
+[[ "$HAVE_OURS" == 1 ]] || exit 0
+"$PY" - "$OUT/learner-ours.jsonl" "$OUT/sb3-peer.jsonl" <<'EOF'
+import json, sys
+def rows(path):
+    for line in open(path):
+        if line.startswith("{"):
+            r = json.loads(line)
+            r.update(r.get("config") or {})
+            algo = str(r.get("algo") or r.get("bench", "").rsplit(".", 1)[-1]).lower()
+            value = r.get("updates_per_s", r.get("value"))
+            if algo and value is not None and "threads" in r:
+                yield r.get("impl", "mapless"), algo, int(r["threads"]), float(value)
+ours = {(a, t): v for _, a, t, v in rows(sys.argv[1])}
+peer = {}
+for impl, a, t, v in rows(sys.argv[2]):
+    peer.setdefault(impl, {})[(a, t)] = v
+print()
+impls = sorted(peer)
+print(f"{'algo':>5} {'threads':>7} {'ours upd/s':>11} " + " ".join(f"{i + ' upd/s':>14} {'ours/' + i:>12}" for i in impls))
+for key in sorted(ours, key=lambda k: (["sac", "td3", "ddpg"].index(k[0]) if k[0] in ("sac", "td3", "ddpg") else 9, k[1])):
+    cells = []
+    for i in impls:
+        p = peer[i].get(key)
+        cells.append(f"{p:>14,.1f} {ours[key] / p:>11.2f}x" if p else f"{'-':>14} {'-':>12}")
+    print(f"{key[0]:>5} {key[1]:>7} {ours[key]:>11,.1f} " + " ".join(cells))
+print("(target of issue 4: ours/sb3 >= 3x for SAC)")
+EOF

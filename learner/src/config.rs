@@ -1,0 +1,477 @@
+//! The learner's configuration: which algorithm, its hyperparameters, and where it runs.
+//!
+//! Defaults reproduce the paper: the values of its Table I ("non-default hyperparameters")
+//! are marked [paper Table I]; everything else the paper left at a MATLAB Reinforcement
+//! Learning Toolbox default, which we could only infer, and is marked [inferred, …] with the
+//! source (SPEC §2). Every field has a default, so a config file names only what it changes;
+//! unknown fields are refused, so a typo is an error rather than a silent default.
+//!
+//! ```yaml
+//! algorithm: sac
+//! device: cuda
+//! sac: { initial_alpha: 0.5 }
+//! ```
+
+use serde::{Deserialize, Serialize};
+
+use crate::LearnerError;
+
+/// Which of the paper's three algorithms (§II-A/B/C).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum AlgorithmKind {
+    /// Deep Deterministic Policy Gradient, paper eqs. 1–5.
+    Ddpg,
+    /// Twin-Delayed DDPG, paper eqs. 6–8.
+    Td3,
+    /// Soft Actor-Critic, paper eqs. 6, 9–11.
+    Sac,
+}
+
+impl AlgorithmKind {
+    /// `ddpg`, `td3` or `sac`, as in config files and checkpoint metadata.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Ddpg => "ddpg",
+            Self::Td3 => "td3",
+            Self::Sac => "sac",
+        }
+    }
+
+    /// The wire enum.
+    pub fn to_proto(self) -> mapless_proto::v1::Algorithm {
+        use mapless_proto::v1::Algorithm;
+        match self {
+            Self::Ddpg => Algorithm::Ddpg,
+            Self::Td3 => Algorithm::Td3,
+            Self::Sac => Algorithm::Sac,
+        }
+    }
+}
+
+impl std::str::FromStr for AlgorithmKind {
+    type Err = LearnerError;
+    fn from_str(s: &str) -> Result<Self, LearnerError> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "ddpg" => Ok(Self::Ddpg),
+            "td3" => Ok(Self::Td3),
+            "sac" => Ok(Self::Sac),
+            other => Err(LearnerError::InvalidConfig {
+                field: "algorithm",
+                reason: format!("is `{other}`; expected `ddpg`, `td3` or `sac`"),
+            }),
+        }
+    }
+}
+
+/// Everything an [`Agent`](crate::algo::Agent) is built from. Stored in every checkpoint.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearnerConfig {
+    /// Which algorithm [paper: all three are compared].
+    pub algorithm: AlgorithmKind,
+    /// `cpu`, `cuda` or `cuda:N` (see [`crate::Device`]).
+    pub device: String,
+    /// Seed of the learner's random streams: initial weights, SAC's reparameterisation
+    /// noise, TD3's target-smoothing noise, exploration noise.
+    pub seed: u64,
+    /// Width of both hidden layers of every network [inferred: 256; paper §II-B gives two
+    /// ReLU hidden layers but not their width].
+    pub hidden_width: i64,
+    /// γ, discount factor [paper Table I: 0.995].
+    pub gamma: f64,
+    /// Actor (policy) learning rate [paper Table I: 5e-5].
+    pub actor_lr: f64,
+    /// Critic (Q-function) learning rate [paper Table I: 5e-4].
+    pub critic_lr: f64,
+    /// τ, target smoothing factor: θ_t ← (1−τ)θ_t + τθ after each target update
+    /// [paper Table I: 0.001].
+    pub tau: f64,
+    /// M, minibatch size in eqs. 1, 3, 6, 10, 11 [paper Table I: 128].
+    pub batch_size: usize,
+    /// Replay capacity in transitions [paper Table I: 1,000,000]. Used by whoever builds the
+    /// replay table; kept here so one file configures a run.
+    pub replay_capacity: usize,
+    /// Largest global L2 norm of each network's gradient before the optimiser step; `null`
+    /// disables clipping [inferred: 1.0, MATLAB `rlOptimizerOptions.GradientThreshold`; note
+    /// MATLAB's default method clips each parameter tensor's norm, we clip the whole
+    /// network's gradient as `torch.nn.utils.clip_grad_norm_` does].
+    pub grad_clip_norm: Option<f64>,
+    /// Adam's moment decay rates and ε for every optimiser.
+    pub adam: AdamConfig,
+    /// Evaluate twin critics as one batched network (`baddbmm` over stacked weights) rather
+    /// than one after the other. Same parameters and results up to float rounding; purely a
+    /// speed choice. Measured on the 2-core reference box, 1 thread, 17 obs / 2 actions,
+    /// 2×256, batch 128 (`examples/bench_updates.rs`), SAC: fused 126 vs 121 updates/s on
+    /// 1 thread (97 vs 119 in a busier run), 180 vs 152 on 2 threads; a wash for DDPG (one
+    /// critic) [inferred: true].
+    pub fused_critics: bool,
+    /// DDPG's own settings.
+    pub ddpg: DdpgConfig,
+    /// TD3's own settings.
+    pub td3: Td3Config,
+    /// SAC's own settings.
+    pub sac: SacConfig,
+}
+
+impl Default for LearnerConfig {
+    fn default() -> Self {
+        Self {
+            algorithm: AlgorithmKind::Sac,
+            device: "cpu".into(),
+            seed: 0,
+            hidden_width: crate::nets::DEFAULT_HIDDEN_WIDTH,
+            gamma: 0.995,
+            actor_lr: 5e-5,
+            critic_lr: 5e-4,
+            tau: 0.001,
+            batch_size: 128,
+            replay_capacity: 1_000_000,
+            grad_clip_norm: Some(1.0),
+            adam: AdamConfig::default(),
+            fused_critics: true,
+            ddpg: DdpgConfig::default(),
+            td3: Td3Config::default(),
+            sac: SacConfig::default(),
+        }
+    }
+}
+
+/// Adam (Kingma & Ba 2015) settings shared by every optimiser.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct AdamConfig {
+    /// β₁, first-moment decay [inferred: 0.9, MATLAB `GradientDecayFactor`].
+    pub beta1: f64,
+    /// β₂, second-moment decay [inferred: 0.999, MATLAB `SquaredGradientDecayFactor`].
+    pub beta2: f64,
+    /// ε added to the denominator [inferred: 1e-8, MATLAB `Epsilon`].
+    pub eps: f64,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        Self {
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+        }
+    }
+}
+
+/// Exploration noise added to a deterministic policy's action when acting to explore.
+/// Actions are clamped to [−1, 1] afterwards.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
+pub enum ExplorationNoise {
+    /// a + σ·N(0, I), independent at every step.
+    Gaussian {
+        /// σ.
+        sigma: f64,
+    },
+    /// Ornstein–Uhlenbeck: x ← x + θ(μ − x)·dt + σ·√dt·N(0, I); a + x. Reset at episode start.
+    OrnsteinUhlenbeck {
+        /// θ, mean attraction.
+        theta: f64,
+        /// σ.
+        sigma: f64,
+        /// μ, the mean the process reverts to.
+        mean: f64,
+        /// dt, the sample time.
+        dt: f64,
+    },
+}
+
+impl ExplorationNoise {
+    fn validate(&self, field: &'static str) -> Result<(), LearnerError> {
+        let ok = match *self {
+            Self::Gaussian { sigma } => sigma.is_finite() && sigma >= 0.0,
+            Self::OrnsteinUhlenbeck {
+                theta,
+                sigma,
+                mean,
+                dt,
+            } => {
+                theta.is_finite()
+                    && theta >= 0.0
+                    && sigma.is_finite()
+                    && sigma >= 0.0
+                    && mean.is_finite()
+                    && dt.is_finite()
+                    && dt > 0.0
+            }
+        };
+        if ok {
+            Ok(())
+        } else {
+            Err(LearnerError::InvalidConfig {
+                field,
+                reason: format!("{self:?}: σ, θ must be finite and ≥ 0, dt > 0"),
+            })
+        }
+    }
+}
+
+/// DDPG (paper §II-A).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct DdpgConfig {
+    /// Exploration [inferred, MATLAB `rlDDPGAgentOptions.NoiseOptions`: Ornstein–Uhlenbeck
+    /// θ = 0.15, σ = 0.3, μ = 0; dt = 0.1 s, the simulator's sample time (SPEC §2)].
+    pub exploration: ExplorationNoise,
+}
+
+impl Default for DdpgConfig {
+    fn default() -> Self {
+        Self {
+            exploration: ExplorationNoise::OrnsteinUhlenbeck {
+                theta: 0.15,
+                sigma: 0.3,
+                mean: 0.0,
+                dt: 0.1,
+            },
+        }
+    }
+}
+
+/// TD3 (paper §II-B).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct Td3Config {
+    /// Exploration [inferred, MATLAB `rlTD3AgentOptions.ExplorationModel`: Gaussian,
+    /// σ ≈ 0.32 on the normalised action (SPEC §2)].
+    pub exploration: ExplorationNoise,
+    /// σ of ε in eq. 7, target-policy smoothing [inferred, MATLAB
+    /// `TargetPolicySmoothModel`: 0.45 on the normalised action (SPEC §2)].
+    pub target_noise_std: f64,
+    /// ε in eq. 7 is clipped to ±this [inferred, MATLAB: 0.5 (SPEC §2)].
+    pub target_noise_clip: f64,
+    /// The actor and the targets are updated once every this many critic updates
+    /// [inferred, MATLAB `PolicyUpdateFrequency` / Fujimoto et al.: 2].
+    pub policy_delay: u64,
+}
+
+impl Default for Td3Config {
+    fn default() -> Self {
+        Self {
+            exploration: ExplorationNoise::Gaussian { sigma: 0.32 },
+            target_noise_std: 0.45,
+            target_noise_clip: 0.5,
+            policy_delay: 2,
+        }
+    }
+}
+
+/// SAC (paper §II-C).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct SacConfig {
+    /// α at the start, the entropy weight of eqs. 9 and 11 [inferred, MATLAB
+    /// `EntropyWeightOptions.EntropyWeight`: 1].
+    pub initial_alpha: f64,
+    /// Learning rate of log α in eq. 10 [inferred, MATLAB `EntropyWeightOptions.LearnRate`:
+    /// 3e-4].
+    pub alpha_lr: f64,
+    /// Tune α by eq. 10; `false` keeps `initial_alpha` fixed [inferred: true].
+    pub autotune_alpha: bool,
+    /// H, target entropy of eq. 10; `null` means −act_dim [inferred, MATLAB
+    /// `EntropyWeightOptions.TargetEntropy`: −(number of actions) = −2 for the car].
+    pub target_entropy: Option<f64>,
+    /// Lower clamp of the actor's log σ output [inferred: −20, Haarnoja et al.'s code and
+    /// Stable-Baselines3]. Published with the policy (`sac.log_std_min`).
+    pub log_std_min: f64,
+    /// Upper clamp of the actor's log σ output [inferred: 2, as above]
+    /// (`sac.log_std_max`).
+    pub log_std_max: f64,
+}
+
+impl Default for SacConfig {
+    fn default() -> Self {
+        Self {
+            initial_alpha: 1.0,
+            alpha_lr: 3e-4,
+            autotune_alpha: true,
+            target_entropy: None,
+            log_std_min: -20.0,
+            log_std_max: 2.0,
+        }
+    }
+}
+
+impl LearnerConfig {
+    /// Checks every field's domain; the error names the field.
+    pub fn validate(&self) -> Result<(), LearnerError> {
+        let bad = |field: &'static str, reason: String| {
+            Err(LearnerError::InvalidConfig { field, reason })
+        };
+        let unit = |x: f64| x.is_finite() && (0.0..=1.0).contains(&x);
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        self.device.parse::<crate::Device>()?;
+        if self.hidden_width < 1 {
+            return bad(
+                "hidden_width",
+                format!("is {}; must be ≥ 1", self.hidden_width),
+            );
+        }
+        if !unit(self.gamma) {
+            return bad("gamma", format!("is {}; must be in [0, 1]", self.gamma));
+        }
+        if !unit(self.tau) {
+            return bad("tau", format!("is {}; must be in [0, 1]", self.tau));
+        }
+        for (field, lr) in [
+            ("actor_lr", self.actor_lr),
+            ("critic_lr", self.critic_lr),
+            ("sac.alpha_lr", self.sac.alpha_lr),
+        ] {
+            if !positive(lr) {
+                return bad(field, format!("is {lr}; must be finite and > 0"));
+            }
+        }
+        if self.batch_size == 0 {
+            return bad("batch_size", "is 0; must be ≥ 1".into());
+        }
+        if self.replay_capacity == 0 {
+            return bad("replay_capacity", "is 0; must be ≥ 1".into());
+        }
+        if let Some(c) = self.grad_clip_norm {
+            if !positive(c) {
+                return bad(
+                    "grad_clip_norm",
+                    format!("is {c}; must be finite and > 0, or null"),
+                );
+            }
+        }
+        let a = &self.adam;
+        if !(a.beta1.is_finite() && (0.0..1.0).contains(&a.beta1)) {
+            return bad("adam.beta1", format!("is {}; must be in [0, 1)", a.beta1));
+        }
+        if !(a.beta2.is_finite() && (0.0..1.0).contains(&a.beta2)) {
+            return bad("adam.beta2", format!("is {}; must be in [0, 1)", a.beta2));
+        }
+        if !positive(a.eps) {
+            return bad("adam.eps", format!("is {}; must be finite and > 0", a.eps));
+        }
+        self.ddpg.exploration.validate("ddpg.exploration")?;
+        self.td3.exploration.validate("td3.exploration")?;
+        let t = &self.td3;
+        if !(t.target_noise_std.is_finite() && t.target_noise_std >= 0.0) {
+            return bad(
+                "td3.target_noise_std",
+                format!("is {}; must be finite and ≥ 0", t.target_noise_std),
+            );
+        }
+        if !(t.target_noise_clip.is_finite() && t.target_noise_clip >= 0.0) {
+            return bad(
+                "td3.target_noise_clip",
+                format!("is {}; must be finite and ≥ 0", t.target_noise_clip),
+            );
+        }
+        if t.policy_delay == 0 {
+            return bad("td3.policy_delay", "is 0; must be ≥ 1".into());
+        }
+        let s = &self.sac;
+        if !positive(s.initial_alpha) {
+            return bad(
+                "sac.initial_alpha",
+                format!("is {}; must be finite and > 0", s.initial_alpha),
+            );
+        }
+        if let Some(h) = s.target_entropy {
+            if !h.is_finite() {
+                return bad(
+                    "sac.target_entropy",
+                    format!("is {h}; must be finite or null"),
+                );
+            }
+        }
+        if !(s.log_std_min.is_finite()
+            && s.log_std_max.is_finite()
+            && s.log_std_min < s.log_std_max)
+        {
+            return bad(
+                "sac.log_std_min",
+                format!(
+                    "and log_std_max are {} and {}; need finite min < max",
+                    s.log_std_min, s.log_std_max
+                ),
+            );
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_the_papers_table_one() {
+        let c = LearnerConfig::default();
+        assert_eq!(
+            (
+                c.gamma,
+                c.actor_lr,
+                c.critic_lr,
+                c.tau,
+                c.batch_size,
+                c.replay_capacity
+            ),
+            (0.995, 5e-5, 5e-4, 0.001, 128, 1_000_000)
+        );
+        assert_eq!((c.hidden_width, c.grad_clip_norm), (256, Some(1.0)));
+        assert_eq!(
+            (c.sac.initial_alpha, c.sac.alpha_lr, c.sac.target_entropy),
+            (1.0, 3e-4, None)
+        );
+        assert_eq!(
+            (
+                c.td3.target_noise_std,
+                c.td3.target_noise_clip,
+                c.td3.policy_delay
+            ),
+            (0.45, 0.5, 2)
+        );
+        assert!(matches!(
+            c.ddpg.exploration,
+            ExplorationNoise::OrnsteinUhlenbeck {
+                theta: 0.15,
+                sigma: 0.3,
+                ..
+            }
+        ));
+        c.validate().unwrap();
+    }
+
+    #[test]
+    fn a_partial_json_config_keeps_the_other_defaults_and_typos_are_refused() {
+        let c: LearnerConfig =
+            serde_json::from_str(r#"{"algorithm":"td3","td3":{"policy_delay":3}}"#).unwrap();
+        assert_eq!(c.algorithm, AlgorithmKind::Td3);
+        assert_eq!(c.td3.policy_delay, 3);
+        assert_eq!(c.td3.target_noise_std, 0.45);
+        assert_eq!(c.gamma, 0.995);
+        assert!(serde_json::from_str::<LearnerConfig>(r#"{"gama":0.9}"#).is_err());
+    }
+
+    #[test]
+    fn validation_names_the_offending_field() {
+        let mut c = LearnerConfig::default();
+        c.gamma = 1.5;
+        assert!(c.validate().unwrap_err().to_string().contains("`gamma`"));
+        let mut c = LearnerConfig::default();
+        c.td3.policy_delay = 0;
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("`td3.policy_delay`")
+        );
+        let mut c = LearnerConfig::default();
+        c.device = "tpu".into();
+        assert!(matches!(
+            c.validate().unwrap_err(),
+            LearnerError::InvalidDevice { .. }
+        ));
+    }
+}

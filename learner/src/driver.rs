@@ -1,0 +1,241 @@
+//! The learner's main loop: sample → update → (priorities) → publish every K → checkpoint.
+//!
+//! ```text
+//!   ReplaySource ──SampledBatch──► Minibatch ──► Agent::update ──► |TD error| ──► priorities
+//!                                                     │
+//!                     every `publish_every` updates   ├──► WeightsPublisher (version v+1)
+//!                     every `checkpoint_every`        ├──► checkpoint::save (+ version, in `extra`)
+//!                     every `metrics_every`           └──► TensorBoard scalars + a tracing event
+//! ```
+//!
+//! The weights version counts publications, not updates: it starts at 1 and is stored in every
+//! checkpoint, so a resumed learner continues the count and actors never see it go back.
+//! The update counter (`learner_step` in the published metadata) is the agent's own.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use mapless_proto::v1::WeightsSnapshot;
+use serde::{Deserialize, Serialize};
+
+use crate::LearnerError;
+use crate::algo::{Agent, UpdateStats};
+use crate::batch::Minibatch;
+use crate::checkpoint;
+use crate::source::ReplaySource;
+use crate::tensorboard::SummaryWriter;
+use crate::weights::{WeightsPublisher, snapshot_from_tensors, unix_ms_now};
+
+/// Key of the weights version in a checkpoint's `extra` JSON.
+pub const EXTRA_WEIGHTS_VERSION: &str = "weights_version";
+
+/// How often the loop publishes, checkpoints and reports.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct DriverConfig {
+    /// Publish the policy every K updates (K ≥ 1). Actors act with weights at most K updates old.
+    pub publish_every: u64,
+    /// Write a checkpoint every N updates; 0 = only when asked (and at the end of `run`).
+    pub checkpoint_every: u64,
+    /// Checkpoints kept on disk.
+    pub checkpoint_keep: usize,
+    /// Write TensorBoard scalars and a progress event every M updates (M ≥ 1).
+    pub metrics_every: u64,
+    /// Send |TD error| back as new priorities (prioritised replay tables only).
+    pub send_priorities: bool,
+}
+
+impl Default for DriverConfig {
+    fn default() -> Self {
+        DriverConfig { publish_every: 100, checkpoint_every: 0, checkpoint_keep: checkpoint::DEFAULT_KEEP, metrics_every: 100, send_priorities: false }
+    }
+}
+
+/// What [`Driver::run`] did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunReport {
+    /// Updates done in this call.
+    pub updates: u64,
+    /// The agent's update counter at the end.
+    pub total_updates: u64,
+    /// Newest published weights version.
+    pub weights_version: u64,
+    /// Updates per second over the call.
+    pub updates_per_s: f64,
+    /// The last checkpoint written, if any.
+    pub checkpoint: Option<PathBuf>,
+}
+
+/// Ties an [`Agent`] to a replay source, a weights publisher, checkpoints and metrics.
+pub struct Driver {
+    agent: Agent,
+    source: Box<dyn ReplaySource>,
+    publisher: WeightsPublisher,
+    cfg: DriverConfig,
+    checkpoint_root: Option<PathBuf>,
+    metrics: Option<SummaryWriter>,
+    version: u64,
+    last_stats: UpdateStats,
+    window: (Instant, u64),
+}
+
+impl Driver {
+    /// A driver around `agent`. `weights_version` is the last version published before (0 for a
+    /// fresh run; [`Driver::resume`] reads it from the checkpoint).
+    pub fn new(agent: Agent, source: Box<dyn ReplaySource>, publisher: WeightsPublisher, cfg: DriverConfig, weights_version: u64) -> Result<Self, LearnerError> {
+        if cfg.publish_every == 0 || cfg.metrics_every == 0 || cfg.checkpoint_keep == 0 {
+            return Err(LearnerError::InvalidConfig { field: "driver", reason: "publish_every, metrics_every and checkpoint_keep must be ≥ 1".into() });
+        }
+        let start = agent.updates();
+        Ok(Driver { agent, source, publisher, cfg, checkpoint_root: None, metrics: None, version: weights_version, last_stats: UpdateStats::default(), window: (Instant::now(), start) })
+    }
+
+    /// Loads the newest checkpoint under (or at) `path`, with its weights version; `device`
+    /// overrides the stored one.
+    pub fn resume(path: &Path, device: Option<&str>, source: Box<dyn ReplaySource>, publisher: WeightsPublisher, cfg: DriverConfig) -> Result<Self, LearnerError> {
+        let (agent, extra) = checkpoint::load(path, device)?;
+        let version = extra.get(EXTRA_WEIGHTS_VERSION).and_then(serde_json::Value::as_u64).unwrap_or(0);
+        Driver::new(agent, source, publisher, cfg, version)
+    }
+
+    /// Writes checkpoints under `root` (periodically and at the end of [`Driver::run`]).
+    pub fn with_checkpoints(mut self, root: impl Into<PathBuf>) -> Self {
+        self.checkpoint_root = Some(root.into());
+        self
+    }
+
+    /// Writes TensorBoard event files into `dir`.
+    pub fn with_tensorboard(mut self, dir: &Path) -> Result<Self, LearnerError> {
+        self.metrics = Some(SummaryWriter::create(dir)?);
+        Ok(self)
+    }
+
+    /// The agent.
+    pub fn agent(&self) -> &Agent {
+        &self.agent
+    }
+
+    /// The agent, mutably (acting in-process, tests).
+    pub fn agent_mut(&mut self) -> &mut Agent {
+        &mut self.agent
+    }
+
+    /// Newest published weights version (0 before the first).
+    pub fn weights_version(&self) -> u64 {
+        self.version
+    }
+
+    /// The replay source (for its counters).
+    pub fn source(&self) -> &dyn ReplaySource {
+        self.source.as_ref()
+    }
+
+    /// Scalars of the most recent update.
+    pub fn last_stats(&self) -> &UpdateStats {
+        &self.last_stats
+    }
+
+    /// The current policy as the next weights version (not yet published).
+    pub fn snapshot(&self) -> Result<WeightsSnapshot, LearnerError> {
+        let mut metadata: std::collections::HashMap<String, String> = self.agent.policy_metadata().into_iter().collect();
+        // The agent's `version` key is its update counter; on the wire that is `learner_step`.
+        if let Some(step) = metadata.remove("version") {
+            metadata.insert("learner_step".into(), step);
+        }
+        let mut s = snapshot_from_tensors(self.version + 1, self.agent.algorithm(), self.agent.obs_dim(), self.agent.act_dim(), &self.agent.policy_tensors(), metadata)?;
+        s.created_unix_ms = unix_ms_now();
+        Ok(s)
+    }
+
+    /// Publishes the current policy as the next version; returns it.
+    pub fn publish(&mut self) -> Result<u64, LearnerError> {
+        let snapshot = self.snapshot()?;
+        self.version = self.publisher.publish(snapshot)?;
+        Ok(self.version)
+    }
+
+    /// Writes a checkpoint now (needs [`Driver::with_checkpoints`]).
+    pub fn checkpoint(&mut self) -> Result<PathBuf, LearnerError> {
+        let root = self.checkpoint_root.clone().ok_or_else(|| LearnerError::InvalidConfig { field: "driver", reason: "no checkpoint directory configured".into() })?;
+        let extra = serde_json::json!({ EXTRA_WEIGHTS_VERSION: self.version });
+        checkpoint::save(&root, &self.agent, &extra, self.cfg.checkpoint_keep)
+    }
+
+    /// One update on the next minibatch, with everything that is due after it.
+    pub fn step(&mut self) -> Result<(), LearnerError> {
+        if self.version == 0 {
+            // Actors wait for weights: give them the initial policy before the first update.
+            self.publish()?;
+        }
+        let sampled = self.source.next_batch()?;
+        let batch = Minibatch::from_sampled(&sampled, self.agent.device())?;
+        let stats = self.agent.update(&batch)?;
+        if self.cfg.send_priorities && !stats.td_errors.is_empty() {
+            // A lost priority update only delays re-weighting; the source counts it.
+            if let Err(e) = self.source.update_priorities(&sampled.keys, &stats.td_errors) {
+                tracing::warn!(error = %e, "priority update failed");
+            }
+        }
+        self.last_stats = stats;
+        let n = self.agent.updates();
+        if n % self.cfg.publish_every == 0 {
+            self.publish()?;
+        }
+        if self.cfg.checkpoint_every > 0 && n % self.cfg.checkpoint_every == 0 && self.checkpoint_root.is_some() {
+            self.checkpoint()?;
+        }
+        if n % self.cfg.metrics_every == 0 {
+            self.report_metrics(n);
+        }
+        Ok(())
+    }
+
+    fn report_metrics(&mut self, n: u64) {
+        let (since, at) = self.window;
+        let rate = (n - at) as f64 / since.elapsed().as_secs_f64().max(1e-9);
+        self.window = (Instant::now(), n);
+        let s = &self.last_stats;
+        tracing::info!(
+            updates = n,
+            weights_version = self.version,
+            updates_per_s = rate.round(),
+            critic_loss = s.get(crate::algo::metric::CRITIC_LOSS),
+            q_mean = s.get(crate::algo::metric::Q_MEAN),
+            alpha = s.get(crate::algo::metric::ALPHA),
+            "learner progress"
+        );
+        if let Some(w) = self.metrics.as_mut() {
+            let step = n as i64;
+            let mut write = |tag: &str, v: f64| {
+                if let Err(e) = w.add_scalar(tag, step, v as f32) {
+                    tracing::warn!(error = %e, tag, "tensorboard write failed");
+                }
+            };
+            for (name, v) in &s.scalars {
+                write(name, *v);
+            }
+            write("charts/updates_per_s", rate);
+            write("charts/weights_version", self.version as f64);
+        }
+    }
+
+    /// Updates until `stop` is set or `max_updates` more are done, then checkpoints (when a
+    /// checkpoint directory is set) and publishes the final policy.
+    pub fn run(&mut self, stop: &AtomicBool, max_updates: Option<u64>) -> Result<RunReport, LearnerError> {
+        let start = Instant::now();
+        let first = self.agent.updates();
+        while !stop.load(Ordering::Relaxed) && max_updates.is_none_or(|m| self.agent.updates() - first < m) {
+            self.step()?;
+        }
+        let updates = self.agent.updates() - first;
+        if updates > 0 && self.agent.updates() % self.cfg.publish_every != 0 {
+            self.publish()?;
+        }
+        let checkpoint = if self.checkpoint_root.is_some() { Some(self.checkpoint()?) } else { None };
+        if let Some(w) = self.metrics.as_mut() {
+            w.flush()?;
+        }
+        Ok(RunReport { updates, total_updates: self.agent.updates(), weights_version: self.version, updates_per_s: updates as f64 / start.elapsed().as_secs_f64().max(1e-9), checkpoint })
+    }
+}

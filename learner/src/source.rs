@@ -1,0 +1,1065 @@
+//! Where the learner's minibatches come from: the replay table in this process, or the replay
+//! service over gRPC. Both hand out `mapless.v1.SampledBatch`es and take priority updates.
+//!
+//! ```text
+//!  InProcess:  update loop ──Table::sample──► Arc<Table>            (same process)
+//!
+//!  GrpcSource: update loop ◄── bounded queue (queue_depth) ◄── sample task ◄══ Sample stream (prefetch)
+//!              update loop ──► bounded queue ──► priority task ══► UpdatePriorities (async)
+//!                              └──────── background thread: current-thread tokio runtime ──┘
+//! ```
+//!
+//! The [`GrpcSource`]'s background thread keeps its queue full, so `next_batch` returns at
+//! once whenever the replay service keeps up; decoding happens off the update thread. When the
+//! stream breaks (the service restarts, the network drops) it reconnects with exponential
+//! backoff and the update loop merely waits. Errors that retrying cannot fix (wrong table,
+//! wrong token, a protocol or dims mismatch) stop the source: `next_batch` returns
+//! [`LearnerError::ReplaySourceStopped`] from then on.
+//!
+//! Everything here is libtorch-free.
+
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use mapless_proto::MAX_MESSAGE_BYTES;
+use mapless_proto::v1::replay_service_client::ReplayServiceClient;
+use mapless_proto::v1::{
+    PriorityUpdate, PriorityUpdateResponse, ProtocolVersion, SampleRequest, SampledBatch, Selector,
+    ServerInfoRequest,
+};
+use mapless_replay::Table;
+use tokio::sync::{Notify, watch};
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+use tonic::{Code, Request, Status};
+use tracing::{debug, info, warn};
+
+use crate::error::LearnerError;
+
+// ---------------------------------------------------------------------------------------------
+// The trait
+// ---------------------------------------------------------------------------------------------
+
+/// A stream of minibatches for the update loop, and the way back for new priorities.
+///
+/// Threading: owned by the update thread (`Send`, used through `&mut self`).
+pub trait ReplaySource: Send {
+    /// The next minibatch of the configured batch size. Blocks until one is available (the
+    /// replay rate limiter may hold it back, e.g. during warm-up).
+    fn next_batch(&mut self) -> Result<SampledBatch, LearnerError>;
+
+    /// New priorities (typically |TD error| + ε) for keys of sampled rows. Fails at once on
+    /// bad input (lengths differ, NaN, infinite or negative values); otherwise may be applied
+    /// later. Tables that sample uniformly ignore updates.
+    fn update_priorities(&mut self, keys: &[u64], priorities: &[f32]) -> Result<(), LearnerError>;
+
+    /// Counters since the source was created.
+    fn stats(&self) -> SourceStats;
+}
+
+/// What a source has done and what went wrong, for logs and TensorBoard.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SourceStats {
+    /// Minibatches handed to the update loop.
+    pub batches: u64,
+    /// Sample streams (re)opened after the first one.
+    pub reconnects: u64,
+    /// Sample streams that broke or could not be opened (each is followed by a backoff).
+    pub stream_errors: u64,
+    /// Minibatches received that failed `SampledBatch::validate` and were dropped.
+    pub invalid_batches: u64,
+    /// Priority updates applied (in process) or acknowledged by the service.
+    pub priority_updates: u64,
+    /// Priority updates that failed after retries and were dropped.
+    pub priority_update_errors: u64,
+    /// Priority updates dropped because the outgoing queue was full.
+    pub priority_updates_dropped: u64,
+    /// The most recent error, if any.
+    pub last_error: Option<String>,
+}
+
+/// Checks priorities before they leave the update thread; returns them as f64.
+fn checked_priorities(keys: &[u64], priorities: &[f32]) -> Result<Vec<f64>, LearnerError> {
+    if keys.len() != priorities.len() {
+        return Err(LearnerError::InvalidPriorities {
+            reason: format!("{} keys but {} priorities", keys.len(), priorities.len()),
+        });
+    }
+    if let Some(i) = priorities
+        .iter()
+        .position(|p| !(p.is_finite() && *p >= 0.0))
+    {
+        return Err(LearnerError::InvalidPriorities {
+            reason: format!(
+                "priority {i} (key {}) is {}; priorities must be finite and >= 0",
+                keys[i], priorities[i]
+            ),
+        });
+    }
+    Ok(priorities.iter().map(|&p| f64::from(p)).collect())
+}
+
+// ---------------------------------------------------------------------------------------------
+// In process
+// ---------------------------------------------------------------------------------------------
+
+/// Samples straight from a replay [`Table`] in this process (single-process runs, tests).
+pub struct InProcess {
+    table: Arc<Table>,
+    batch_size: usize,
+    importance_beta: Option<f64>,
+    timeout: Option<Duration>,
+    stats: SourceStats,
+}
+
+impl std::fmt::Debug for InProcess {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("InProcess")
+            .field("table", &self.table.config().name)
+            .field("batch_size", &self.batch_size)
+            .field("importance_beta", &self.importance_beta)
+            .field("timeout", &self.timeout)
+            .finish()
+    }
+}
+
+impl InProcess {
+    /// Minibatches of `batch_size` rows from `table`; `batch_size` must be in
+    /// `1..=table.config().max_sample_rows`.
+    pub fn new(table: Arc<Table>, batch_size: usize) -> Result<Self, LearnerError> {
+        let max = table.config().max_sample_rows;
+        if batch_size == 0 || batch_size > max {
+            return Err(LearnerError::ReplaySourceConfig {
+                reason: format!(
+                    "batch_size is {batch_size}, must be in 1..={max} (the table's max_sample_rows)"
+                ),
+            });
+        }
+        Ok(Self {
+            table,
+            batch_size,
+            importance_beta: None,
+            timeout: None,
+            stats: SourceStats::default(),
+        })
+    }
+
+    /// Importance-sampling exponent β (finite, >= 0); without it the table's configured β is
+    /// used (0 for uniform tables).
+    pub fn with_importance_beta(mut self, beta: f64) -> Result<Self, LearnerError> {
+        if !(beta.is_finite() && beta >= 0.0) {
+            return Err(LearnerError::ReplaySourceConfig {
+                reason: format!("importance_beta is {beta}, must be finite and >= 0"),
+            });
+        }
+        self.importance_beta = Some(beta);
+        Ok(self)
+    }
+
+    /// Longest `next_batch` waits on the rate limiter before failing with the table's
+    /// deadline error; without it, it waits as long as it takes.
+    pub fn with_timeout(mut self, timeout: Duration) -> Self {
+        self.timeout = Some(timeout);
+        self
+    }
+
+    /// The table sampled from.
+    pub fn table(&self) -> &Arc<Table> {
+        &self.table
+    }
+}
+
+impl ReplaySource for InProcess {
+    fn next_batch(&mut self) -> Result<SampledBatch, LearnerError> {
+        let deadline = self.timeout.map(|t| Instant::now() + t);
+        match self
+            .table
+            .sample(self.batch_size, self.importance_beta, deadline)
+        {
+            Ok(batch) => {
+                self.stats.batches += 1;
+                Ok(batch)
+            }
+            Err(e) => {
+                self.stats.last_error = Some(e.to_string());
+                Err(e.into())
+            }
+        }
+    }
+
+    fn update_priorities(&mut self, keys: &[u64], priorities: &[f32]) -> Result<(), LearnerError> {
+        let priorities = checked_priorities(keys, priorities)?;
+        match self.table.update_priorities(keys, &priorities) {
+            Ok(_) => {
+                self.stats.priority_updates += 1;
+                Ok(())
+            }
+            Err(e) => {
+                self.stats.priority_update_errors += 1;
+                self.stats.last_error = Some(e.to_string());
+                Err(e.into())
+            }
+        }
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.stats.clone()
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// gRPC endpoint (shared with the weights client)
+// ---------------------------------------------------------------------------------------------
+
+/// Where a gRPC service is and how to reach it: the URI, optional TLS (a CA certificate to
+/// trust, and the name to check it against) and an optional bearer token, sent as
+/// `authorization: Bearer <token>` on every call (what the replay and weights services check).
+///
+/// `http://` URIs are plain HTTP/2 (the services allow that on loopback only); `https://`
+/// needs [`GrpcEndpoint::with_tls`].
+#[derive(Clone)]
+pub struct GrpcEndpoint {
+    uri: String,
+    tls_ca_pem: Option<Vec<u8>>,
+    tls_domain: Option<String>,
+    token: Option<String>,
+    connect_timeout: Duration,
+}
+
+impl std::fmt::Debug for GrpcEndpoint {
+    // Never print the token.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GrpcEndpoint")
+            .field("uri", &self.uri)
+            .field("tls", &self.tls_ca_pem.is_some())
+            .field("tls_domain", &self.tls_domain)
+            .field("token", &self.token.is_some())
+            .finish()
+    }
+}
+
+impl From<&str> for GrpcEndpoint {
+    fn from(uri: &str) -> Self {
+        Self::new(uri)
+    }
+}
+
+impl From<String> for GrpcEndpoint {
+    fn from(uri: String) -> Self {
+        Self::new(uri)
+    }
+}
+
+impl GrpcEndpoint {
+    /// An endpoint at `uri`, e.g. `http://127.0.0.1:50051`; a bare `host:port` means
+    /// `http://host:port`.
+    pub fn new(uri: impl Into<String>) -> Self {
+        let uri = uri.into();
+        let uri = if uri.contains("://") {
+            uri
+        } else {
+            format!("http://{uri}")
+        };
+        Self {
+            uri,
+            tls_ca_pem: None,
+            tls_domain: None,
+            token: None,
+            connect_timeout: Duration::from_secs(5),
+        }
+    }
+
+    /// Use TLS, trusting `ca_pem` (PEM certificate(s)); `domain` overrides the name the
+    /// server's certificate is checked against (default: the URI's host). Switches an
+    /// `http://` URI to `https://`.
+    pub fn with_tls(mut self, ca_pem: impl Into<Vec<u8>>, domain: Option<String>) -> Self {
+        if let Some(rest) = self.uri.strip_prefix("http://") {
+            self.uri = format!("https://{rest}");
+        }
+        self.tls_ca_pem = Some(ca_pem.into());
+        self.tls_domain = domain;
+        self
+    }
+
+    /// [`GrpcEndpoint::with_tls`] with the CA read from a PEM file.
+    pub fn with_tls_ca_file(
+        self,
+        path: &Path,
+        domain: Option<String>,
+    ) -> Result<Self, LearnerError> {
+        let pem = std::fs::read(path).map_err(|error| LearnerError::FileIo {
+            path: path.to_owned(),
+            error,
+        })?;
+        Ok(self.with_tls(pem, domain))
+    }
+
+    /// Send `authorization: Bearer <token>` on every call.
+    pub fn with_token(mut self, token: impl Into<String>) -> Self {
+        self.token = Some(token.into());
+        self
+    }
+
+    /// [`GrpcEndpoint::with_token`] with the token read from a file (trimmed), as the replay
+    /// server reads its own: a file keeps the token out of `ps`.
+    pub fn with_token_file(self, path: &Path) -> Result<Self, LearnerError> {
+        let raw = std::fs::read(path).map_err(|error| LearnerError::FileIo {
+            path: path.to_owned(),
+            error,
+        })?;
+        let token = String::from_utf8_lossy(&raw).trim().to_owned();
+        if token.is_empty() {
+            return Err(LearnerError::ReplaySourceConfig {
+                reason: format!("token file {} is empty", path.display()),
+            });
+        }
+        Ok(self.with_token(token))
+    }
+
+    /// Longest a connection attempt may take [default 5 s].
+    pub fn with_connect_timeout(mut self, timeout: Duration) -> Self {
+        self.connect_timeout = timeout;
+        self
+    }
+
+    /// The URI dialled.
+    pub fn uri(&self) -> &str {
+        &self.uri
+    }
+
+    /// Checks everything that can be checked without dialling: the URI, TLS settings, token.
+    pub fn check(&self) -> Result<(), LearnerError> {
+        self.endpoint()?;
+        self.token_value()?;
+        Ok(())
+    }
+
+    fn config_error(&self, reason: String) -> LearnerError {
+        LearnerError::ReplaySourceConfig {
+            reason: format!("endpoint `{}`: {reason}", self.uri),
+        }
+    }
+
+    fn endpoint(&self) -> Result<Endpoint, LearnerError> {
+        let mut endpoint = Endpoint::from_shared(self.uri.clone())
+            .map_err(|e| self.config_error(format!("not a valid URI: {e}")))?
+            .connect_timeout(self.connect_timeout)
+            .tcp_nodelay(true)
+            .http2_keep_alive_interval(Duration::from_secs(10))
+            .keep_alive_timeout(Duration::from_secs(20))
+            .keep_alive_while_idle(true);
+        match &self.tls_ca_pem {
+            Some(ca) => {
+                let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(ca));
+                if let Some(domain) = &self.tls_domain {
+                    tls = tls.domain_name(domain.clone());
+                }
+                endpoint = endpoint
+                    .tls_config(tls)
+                    .map_err(|e| self.config_error(format!("TLS: {e}")))?;
+            }
+            None if self.uri.starts_with("https://") => {
+                return Err(self.config_error(
+                    "https:// needs a CA certificate to trust (GrpcEndpoint::with_tls)".into(),
+                ));
+            }
+            None => {}
+        }
+        Ok(endpoint)
+    }
+
+    fn token_value(&self) -> Result<Option<MetadataValue<Ascii>>, LearnerError> {
+        self.token
+            .as_ref()
+            .map(|t| {
+                format!("Bearer {t}")
+                    .parse::<MetadataValue<Ascii>>()
+                    .map_err(|_| {
+                        self.config_error("the bearer token is not printable ASCII".into())
+                    })
+            })
+            .transpose()
+    }
+
+    /// Dials the service; failures are [`LearnerError::Grpc`] with code UNAVAILABLE.
+    pub(crate) async fn connect(&self, service: &'static str) -> Result<Channel, LearnerError> {
+        self.endpoint()?
+            .connect()
+            .await
+            .map_err(|e| LearnerError::Grpc {
+                service,
+                endpoint: self.uri.clone(),
+                code: Code::Unavailable,
+                message: format!("cannot connect: {}", error_chain(&e)),
+            })
+    }
+
+    /// `message` as a request carrying the bearer token, if any.
+    pub(crate) fn request<T>(
+        &self,
+        _service: &'static str,
+        message: T,
+    ) -> Result<Request<T>, LearnerError> {
+        let mut request = Request::new(message);
+        if let Some(value) = self.token_value()? {
+            request.metadata_mut().insert("authorization", value);
+        }
+        Ok(request)
+    }
+
+    /// A status from the peer as a [`LearnerError::Grpc`].
+    pub(crate) fn status_error(&self, service: &'static str, status: &Status) -> LearnerError {
+        LearnerError::Grpc {
+            service,
+            endpoint: self.uri.clone(),
+            code: status.code(),
+            message: status.message().to_owned(),
+        }
+    }
+}
+
+/// An error and its causes on one line (tonic's transport errors hide the useful part in
+/// their sources).
+fn error_chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        text.push_str(": ");
+        text.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    text
+}
+
+// ---------------------------------------------------------------------------------------------
+// gRPC source
+// ---------------------------------------------------------------------------------------------
+
+/// How a [`GrpcSource`] samples. [`GrpcSourceConfig::new`] gives the defaults.
+#[derive(Clone, Debug)]
+pub struct GrpcSourceConfig {
+    /// The replay service.
+    pub endpoint: GrpcEndpoint,
+    /// Table to sample; "" means the server's only table.
+    pub table: String,
+    /// Rows per minibatch (SampleRequest.batch_size).
+    pub batch_size: u32,
+    /// Minibatches the server draws ahead (SampleRequest.prefetch; the server clamps it)
+    /// [default 4].
+    pub server_prefetch: u32,
+    /// Minibatches decoded and waiting on this side, ready for `next_batch` [default 4].
+    pub queue_depth: usize,
+    /// Importance-sampling exponent β in [0, 1] (SampleRequest.importance_beta) [default 0].
+    pub importance_beta: f32,
+    /// Observation and action lengths the learner was built for; when set, a server whose
+    /// table has other dims stops the source with a clear error instead of feeding it.
+    pub expected_dims: Option<(usize, usize)>,
+    /// First wait after a broken stream; doubles up to `backoff_max` [default 100 ms].
+    pub backoff_initial: Duration,
+    /// Longest wait between reconnection attempts [default 5 s].
+    pub backoff_max: Duration,
+    /// Priority updates waiting to be sent; when full, new ones are dropped (and counted)
+    /// rather than stalling the update loop [default 64].
+    pub priority_queue_depth: usize,
+}
+
+impl GrpcSourceConfig {
+    /// Defaults for sampling `batch_size` rows from the only table at `endpoint`.
+    pub fn new(endpoint: impl Into<GrpcEndpoint>, batch_size: u32) -> Self {
+        Self {
+            endpoint: endpoint.into(),
+            table: String::new(),
+            batch_size,
+            server_prefetch: 4,
+            queue_depth: 4,
+            importance_beta: 0.0,
+            expected_dims: None,
+            backoff_initial: Duration::from_millis(100),
+            backoff_max: Duration::from_secs(5),
+            priority_queue_depth: 64,
+        }
+    }
+
+    fn validate(&self) -> Result<(), LearnerError> {
+        let bad = |reason: String| Err(LearnerError::ReplaySourceConfig { reason });
+        if self.batch_size == 0 {
+            return bad("batch_size is 0".into());
+        }
+        if self.queue_depth == 0 || self.priority_queue_depth == 0 {
+            return bad("queue_depth and priority_queue_depth must be >= 1".into());
+        }
+        if !(0.0..=1.0).contains(&self.importance_beta) {
+            return bad(format!(
+                "importance_beta is {}, must be in [0, 1]",
+                self.importance_beta
+            ));
+        }
+        if self.backoff_initial.is_zero() || self.backoff_max < self.backoff_initial {
+            return bad("backoff_initial must be > 0 and <= backoff_max".into());
+        }
+        if let Some((obs, act)) = self.expected_dims
+            && (obs == 0 || act == 0)
+        {
+            return bad("expected_dims must be >= 1".into());
+        }
+        self.endpoint.check()
+    }
+}
+
+/// Counters shared between the update thread and the background thread.
+#[derive(Default)]
+struct Shared {
+    reconnects: AtomicU64,
+    stream_errors: AtomicU64,
+    invalid_batches: AtomicU64,
+    priority_updates: AtomicU64,
+    priority_update_errors: AtomicU64,
+    priority_updates_dropped: AtomicU64,
+    /// Set when the table samples uniformly: updates are then not sent at all.
+    uniform: AtomicBool,
+    last_error: Mutex<Option<String>>,
+}
+
+impl Shared {
+    fn record_error(&self, counter: &AtomicU64, error: &str) {
+        counter.fetch_add(1, Ordering::Relaxed);
+        if let Ok(mut last) = self.last_error.lock() {
+            *last = Some(error.to_owned());
+        }
+    }
+}
+
+/// Samples from the replay service over gRPC, prefetching on a background thread; see the
+/// module doc.
+///
+/// Dropping it stops the background thread (and waits for it, at most a moment).
+pub struct GrpcSource {
+    batches: Receiver<Result<SampledBatch, LearnerError>>,
+    /// Wakes the sample task when the queue has room again.
+    room: Arc<Notify>,
+    priorities: tokio::sync::mpsc::Sender<(Vec<u64>, Vec<f64>)>,
+    shared: Arc<Shared>,
+    stop: watch::Sender<bool>,
+    thread: Option<JoinHandle<()>>,
+    batches_delivered: u64,
+    /// Why the source stopped for good, once it has.
+    stopped: Option<String>,
+    endpoint: String,
+}
+
+impl std::fmt::Debug for GrpcSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GrpcSource")
+            .field("endpoint", &self.endpoint)
+            .field("stopped", &self.stopped)
+            .finish()
+    }
+}
+
+impl GrpcSource {
+    /// Starts the background thread, which connects (and keeps reconnecting) on its own:
+    /// this returns at once, even when the service is not up yet. Fails only on a config
+    /// that can never work.
+    pub fn start(config: GrpcSourceConfig) -> Result<Self, LearnerError> {
+        config.validate()?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| LearnerError::ReplaySourceConfig {
+                reason: format!("cannot start the background runtime: {e}"),
+            })?;
+        let (batch_tx, batches) = std::sync::mpsc::sync_channel(config.queue_depth);
+        let (priority_tx, priority_rx) = tokio::sync::mpsc::channel(config.priority_queue_depth);
+        let (stop, stop_rx) = watch::channel(false);
+        let room = Arc::new(Notify::new());
+        let shared = Arc::new(Shared::default());
+        let endpoint = config.endpoint.uri().to_owned();
+        let thread = {
+            let room = Arc::clone(&room);
+            let shared = Arc::clone(&shared);
+            std::thread::Builder::new()
+                .name("replay-source".into())
+                .spawn(move || {
+                    runtime.block_on(async move {
+                        let priorities = tokio::spawn(priority_loop(
+                            config.clone(),
+                            priority_rx,
+                            Arc::clone(&shared),
+                            stop_rx.clone(),
+                        ));
+                        sample_loop(&config, &batch_tx, &room, &shared, stop_rx).await;
+                        priorities.abort();
+                        let _ = priorities.await;
+                    });
+                })
+                .map_err(|e| LearnerError::ReplaySourceConfig {
+                    reason: format!("cannot start the background thread: {e}"),
+                })?
+        };
+        Ok(Self {
+            batches,
+            room,
+            priorities: priority_tx,
+            shared,
+            stop,
+            thread: Some(thread),
+            batches_delivered: 0,
+            stopped: None,
+            endpoint,
+        })
+    }
+
+    /// Like [`ReplaySource::next_batch`], but gives up after `timeout` with `Ok(None)` (for
+    /// an update loop that wants to log that it is waiting).
+    pub fn next_batch_timeout(
+        &mut self,
+        timeout: Duration,
+    ) -> Result<Option<SampledBatch>, LearnerError> {
+        if let Some(reason) = &self.stopped {
+            return Err(LearnerError::ReplaySourceStopped {
+                reason: reason.clone(),
+            });
+        }
+        match self.batches.recv_timeout(timeout) {
+            Ok(item) => self.take(item).map(Some),
+            Err(RecvTimeoutError::Timeout) => Ok(None),
+            Err(RecvTimeoutError::Disconnected) => Err(self.disconnected()),
+        }
+    }
+
+    fn take(
+        &mut self,
+        item: Result<SampledBatch, LearnerError>,
+    ) -> Result<SampledBatch, LearnerError> {
+        self.room.notify_one();
+        match item {
+            Ok(batch) => {
+                self.batches_delivered += 1;
+                Ok(batch)
+            }
+            Err(e) => {
+                let reason = e.to_string();
+                self.stopped = Some(reason.clone());
+                Err(LearnerError::ReplaySourceStopped { reason })
+            }
+        }
+    }
+
+    fn disconnected(&mut self) -> LearnerError {
+        let reason = "the background sampling thread ended".to_owned();
+        self.stopped = Some(reason.clone());
+        LearnerError::ReplaySourceStopped { reason }
+    }
+}
+
+impl ReplaySource for GrpcSource {
+    fn next_batch(&mut self) -> Result<SampledBatch, LearnerError> {
+        if let Some(reason) = &self.stopped {
+            return Err(LearnerError::ReplaySourceStopped {
+                reason: reason.clone(),
+            });
+        }
+        match self.batches.recv() {
+            Ok(item) => self.take(item),
+            Err(_) => Err(self.disconnected()),
+        }
+    }
+
+    fn update_priorities(&mut self, keys: &[u64], priorities: &[f32]) -> Result<(), LearnerError> {
+        let priorities = checked_priorities(keys, priorities)?;
+        if keys.is_empty() || self.shared.uniform.load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        match self.priorities.try_send((keys.to_vec(), priorities)) {
+            Ok(()) => Ok(()),
+            Err(tokio::sync::mpsc::error::TrySendError::Full(_)) => {
+                self.shared.record_error(
+                    &self.shared.priority_updates_dropped,
+                    "priority update dropped: the outgoing queue is full",
+                );
+                Ok(())
+            }
+            Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
+                Err(LearnerError::ReplaySourceStopped {
+                    reason: self
+                        .stopped
+                        .clone()
+                        .unwrap_or_else(|| "the background priority task ended".into()),
+                })
+            }
+        }
+    }
+
+    fn stats(&self) -> SourceStats {
+        let s = &self.shared;
+        SourceStats {
+            batches: self.batches_delivered,
+            reconnects: s.reconnects.load(Ordering::Relaxed),
+            stream_errors: s.stream_errors.load(Ordering::Relaxed),
+            invalid_batches: s.invalid_batches.load(Ordering::Relaxed),
+            priority_updates: s.priority_updates.load(Ordering::Relaxed),
+            priority_update_errors: s.priority_update_errors.load(Ordering::Relaxed),
+            priority_updates_dropped: s.priority_updates_dropped.load(Ordering::Relaxed),
+            last_error: s.last_error.lock().ok().and_then(|l| l.clone()),
+        }
+    }
+}
+
+impl Drop for GrpcSource {
+    fn drop(&mut self) {
+        let _ = self.stop.send(true);
+        self.room.notify_one();
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// Status codes after which retrying the same request cannot succeed.
+fn is_fatal(code: Code) -> bool {
+    matches!(
+        code,
+        Code::InvalidArgument
+            | Code::NotFound
+            | Code::FailedPrecondition
+            | Code::Unauthenticated
+            | Code::PermissionDenied
+            | Code::Unimplemented
+            | Code::OutOfRange
+    )
+}
+
+/// Why opening a stream failed: worth retrying or not.
+enum OpenError {
+    Retry(LearnerError),
+    Fatal(LearnerError),
+}
+
+fn classify(error: LearnerError) -> OpenError {
+    match &error {
+        LearnerError::Grpc { code, .. } if is_fatal(*code) => OpenError::Fatal(error),
+        LearnerError::Grpc { .. } => OpenError::Retry(error),
+        _ => OpenError::Fatal(error),
+    }
+}
+
+/// A connected client and an open Sample stream, with the dims to check batches against.
+struct OpenStream {
+    stream: tonic::Streaming<SampledBatch>,
+    obs_dim: usize,
+    act_dim: usize,
+}
+
+async fn connect_client(
+    config: &GrpcSourceConfig,
+) -> Result<ReplayServiceClient<Channel>, LearnerError> {
+    let channel = config.endpoint.connect("replay").await?;
+    Ok(ReplayServiceClient::new(channel)
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES))
+}
+
+async fn open_stream(config: &GrpcSourceConfig, shared: &Shared) -> Result<OpenStream, OpenError> {
+    let endpoint = &config.endpoint;
+    let mut client = connect_client(config).await.map_err(classify)?;
+    let info_request = endpoint
+        .request(
+            "replay",
+            ServerInfoRequest {
+                protocol_version: ProtocolVersion::V1 as i32,
+            },
+        )
+        .map_err(OpenError::Fatal)?;
+    let info = client
+        .server_info(info_request)
+        .await
+        .map_err(|s| classify(endpoint.status_error("replay", &s)))?
+        .into_inner();
+    if !config.table.is_empty() && config.table != info.table {
+        return Err(OpenError::Fatal(LearnerError::Grpc {
+            service: "replay",
+            endpoint: endpoint.uri().to_owned(),
+            code: Code::NotFound,
+            message: format!(
+                "no table `{}`; the server hosts `{}`",
+                config.table, info.table
+            ),
+        }));
+    }
+    let (obs_dim, act_dim) = (info.obs_dim as usize, info.act_dim as usize);
+    if let Some((obs, act)) = config.expected_dims
+        && (obs, act) != (obs_dim, act_dim)
+    {
+        return Err(OpenError::Fatal(LearnerError::Grpc {
+            service: "replay",
+            endpoint: endpoint.uri().to_owned(),
+            code: Code::FailedPrecondition,
+            message: format!(
+                "table `{}` holds obs_dim {obs_dim}, act_dim {act_dim}; this learner expects obs_dim {obs}, act_dim {act}",
+                info.table
+            ),
+        }));
+    }
+    shared
+        .uniform
+        .store(info.selector == Selector::Uniform as i32, Ordering::Relaxed);
+    let request = endpoint
+        .request(
+            "replay",
+            SampleRequest {
+                protocol_version: ProtocolVersion::V1 as i32,
+                table: config.table.clone(),
+                batch_size: config.batch_size,
+                prefetch: config.server_prefetch,
+                // Wait without limit: the rate limiter legitimately holds samples back during
+                // warm-up, and a broken connection shows up as a transport error anyway.
+                timeout_ms: 0,
+                max_batches: 0,
+                importance_beta: config.importance_beta,
+                ..SampleRequest::default()
+            },
+        )
+        .map_err(OpenError::Fatal)?;
+    let stream = client
+        .sample(request)
+        .await
+        .map_err(|s| classify(endpoint.status_error("replay", &s)))?
+        .into_inner();
+    Ok(OpenStream {
+        stream,
+        obs_dim,
+        act_dim,
+    })
+}
+
+async fn wait_stop(stop: &mut watch::Receiver<bool>) {
+    if stop.wait_for(|s| *s).await.is_err() {
+        // The source is gone without saying stop; nothing will ever consume again.
+        std::future::pending::<()>().await;
+    }
+}
+
+/// How a pushed batch fared.
+enum Push {
+    Queued,
+    /// The source is being dropped.
+    Stop,
+}
+
+/// Puts `item` on the bounded queue, waiting (asynchronously) for room.
+async fn push(
+    tx: &SyncSender<Result<SampledBatch, LearnerError>>,
+    room: &Notify,
+    stop: &mut watch::Receiver<bool>,
+    mut item: Result<SampledBatch, LearnerError>,
+) -> Push {
+    loop {
+        match tx.try_send(item) {
+            Ok(()) => return Push::Queued,
+            Err(TrySendError::Disconnected(_)) => return Push::Stop,
+            Err(TrySendError::Full(back)) => {
+                item = back;
+                // `notify_one` stores a permit when nobody waits, so a batch taken between
+                // `try_send` and here is not missed.
+                tokio::select! {
+                    () = room.notified() => {}
+                    () = wait_stop(stop) => return Push::Stop,
+                }
+            }
+        }
+    }
+}
+
+/// Keeps the queue full, reconnecting with exponential backoff; returns when the source is
+/// dropped or after a fatal error (which it queues for `next_batch`).
+async fn sample_loop(
+    config: &GrpcSourceConfig,
+    tx: &SyncSender<Result<SampledBatch, LearnerError>>,
+    room: &Notify,
+    shared: &Shared,
+    mut stop: watch::Receiver<bool>,
+) {
+    let endpoint = config.endpoint.uri();
+    let max_rows = config.batch_size as usize;
+    let mut backoff = config.backoff_initial;
+    let mut opened = 0u64;
+    loop {
+        if *stop.borrow() {
+            return;
+        }
+        let opening = tokio::select! {
+            opening = open_stream(config, shared) => opening,
+            () = wait_stop(&mut stop) => return,
+        };
+        match opening {
+            Ok(mut open) => {
+                if opened > 0 {
+                    shared.reconnects.fetch_add(1, Ordering::Relaxed);
+                    info!(endpoint, "replay sample stream reopened");
+                } else {
+                    info!(
+                        endpoint,
+                        batch_size = config.batch_size,
+                        "replay sample stream opened"
+                    );
+                }
+                opened += 1;
+                loop {
+                    let message = tokio::select! {
+                        message = open.stream.message() => message,
+                        () = wait_stop(&mut stop) => return,
+                    };
+                    match message {
+                        Ok(Some(batch)) => {
+                            backoff = config.backoff_initial;
+                            if let Err(e) = batch.validate(open.obs_dim, open.act_dim, max_rows) {
+                                let text =
+                                    format!("invalid minibatch from {endpoint} dropped: {e}");
+                                warn!("{text}");
+                                shared.record_error(&shared.invalid_batches, &text);
+                                continue;
+                            }
+                            if let Push::Stop = push(tx, room, &mut stop, Ok(batch)).await {
+                                return;
+                            }
+                        }
+                        Ok(None) => {
+                            let text = format!(
+                                "replay sample stream at {endpoint} ended without an error"
+                            );
+                            warn!("{text}; reopening");
+                            shared.record_error(&shared.stream_errors, &text);
+                            break;
+                        }
+                        Err(status) => {
+                            let error = config.endpoint.status_error("replay", &status);
+                            if is_fatal(status.code()) {
+                                warn!(error = %error, "replay sample stream failed for good");
+                                shared.record_error(&shared.stream_errors, &error.to_string());
+                                let _ = push(tx, room, &mut stop, Err(error)).await;
+                                return;
+                            }
+                            warn!(error = %error, ?backoff, "replay sample stream broke; reconnecting");
+                            shared.record_error(&shared.stream_errors, &error.to_string());
+                            break;
+                        }
+                    }
+                }
+            }
+            Err(OpenError::Fatal(error)) => {
+                warn!(error = %error, "cannot sample from the replay service");
+                shared.record_error(&shared.stream_errors, &error.to_string());
+                let _ = push(tx, room, &mut stop, Err(error)).await;
+                return;
+            }
+            Err(OpenError::Retry(error)) => {
+                debug!(error = %error, ?backoff, "replay service not reachable; retrying");
+                shared.record_error(&shared.stream_errors, &error.to_string());
+            }
+        }
+        tokio::select! {
+            () = tokio::time::sleep(backoff) => {}
+            () = wait_stop(&mut stop) => return,
+        }
+        backoff = (backoff * 2).min(config.backoff_max);
+    }
+}
+
+/// Sends queued priority updates, each with a few retries; runs until the source is dropped.
+async fn priority_loop(
+    config: GrpcSourceConfig,
+    mut updates: tokio::sync::mpsc::Receiver<(Vec<u64>, Vec<f64>)>,
+    shared: Arc<Shared>,
+    mut stop: watch::Receiver<bool>,
+) {
+    /// Attempts per update before it is dropped: priorities are a hint, a stale one is cheap
+    /// to lose, and waiting longer would only let the queue overflow.
+    const ATTEMPTS: u32 = 3;
+    let mut client: Option<ReplayServiceClient<Channel>> = None;
+    loop {
+        let (keys, priorities) = tokio::select! {
+            update = updates.recv() => match update {
+                Some(u) => u,
+                None => return,
+            },
+            () = wait_stop(&mut stop) => return,
+        };
+        if shared.uniform.load(Ordering::Relaxed) {
+            continue;
+        }
+        let update = PriorityUpdate {
+            protocol_version: ProtocolVersion::V1 as i32,
+            table: config.table.clone(),
+            keys,
+            priorities,
+        };
+        let mut backoff = config.backoff_initial;
+        for attempt in 1..=ATTEMPTS {
+            let outcome = tokio::select! {
+                outcome = send_priorities(&config, &mut client, &update) => outcome,
+                () = wait_stop(&mut stop) => return,
+            };
+            match outcome {
+                Ok(response) => {
+                    shared.priority_updates.fetch_add(1, Ordering::Relaxed);
+                    debug!(
+                        updated = response.updated,
+                        unknown_keys = response.unknown_keys,
+                        "priorities updated"
+                    );
+                    break;
+                }
+                Err(LearnerError::Grpc {
+                    code: Code::FailedPrecondition,
+                    ref message,
+                    ..
+                }) if message.contains("uniform") => {
+                    // The table has no priorities; stop sending (ServerInfo also says so).
+                    shared.uniform.store(true, Ordering::Relaxed);
+                    break;
+                }
+                Err(error) => {
+                    let fatal =
+                        matches!(&error, LearnerError::Grpc { code, .. } if is_fatal(*code));
+                    if fatal || attempt == ATTEMPTS {
+                        warn!(error = %error, attempt, "priority update dropped");
+                        shared.record_error(&shared.priority_update_errors, &error.to_string());
+                        break;
+                    }
+                    // A broken connection: dial again after a pause.
+                    client = None;
+                    tokio::select! {
+                        () = tokio::time::sleep(backoff) => {}
+                        () = wait_stop(&mut stop) => return,
+                    }
+                    backoff = (backoff * 2).min(config.backoff_max);
+                }
+            }
+        }
+    }
+}
+
+/// One UpdatePriorities call, dialling first when there is no connection yet.
+async fn send_priorities(
+    config: &GrpcSourceConfig,
+    client: &mut Option<ReplayServiceClient<Channel>>,
+    update: &PriorityUpdate,
+) -> Result<PriorityUpdateResponse, LearnerError> {
+    let mut c = match client {
+        Some(c) => c.clone(),
+        None => {
+            let c = connect_client(config).await?;
+            *client = Some(c.clone());
+            c
+        }
+    };
+    let request = config.endpoint.request("replay", update.clone())?;
+    c.update_priorities(request)
+        .await
+        .map(tonic::Response::into_inner)
+        .map_err(|s| config.endpoint.status_error("replay", &s))
+}

@@ -1,0 +1,351 @@
+//! Checkpoints: exact round trips, the deployable policy file, every way loading can fail,
+//! and a mid-run resume of the Pendulum loop that ends bit-identical to an uninterrupted run.
+
+mod common;
+
+use std::collections::HashMap;
+use std::fs;
+use std::path::Path;
+
+use common::{Harness, LoopState, pendulum_config};
+use mapless_learner::LearnerError;
+use mapless_learner::algo::Agent;
+use mapless_learner::batch::Minibatch;
+use mapless_learner::checkpoint::{self, DEFAULT_KEEP, LATEST, MANIFEST, POLICY, TENSORS};
+use mapless_learner::config::{AlgorithmKind, LearnerConfig};
+use rand::SeedableRng;
+
+const ALL: [AlgorithmKind; 3] = [AlgorithmKind::Ddpg, AlgorithmKind::Td3, AlgorithmKind::Sac];
+
+fn cfg(algorithm: AlgorithmKind) -> LearnerConfig {
+    LearnerConfig {
+        algorithm,
+        hidden_width: 16,
+        seed: 11,
+        ..LearnerConfig::default()
+    }
+}
+
+fn batches(n: usize) -> Vec<Minibatch> {
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(4);
+    (0..n)
+        .map(|_| Minibatch::random(32, 5, 2, &mut rng, tch::Device::Cpu).unwrap())
+        .collect()
+}
+
+fn state(agent: &Agent) -> HashMap<String, Vec<f32>> {
+    agent
+        .state_tensors()
+        .into_iter()
+        .map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap()))
+        .collect()
+}
+
+fn trained(algorithm: AlgorithmKind, updates: usize) -> Agent {
+    let mut agent = Agent::new(&cfg(algorithm), 5, 2).unwrap();
+    for b in batches(updates) {
+        agent.update(&b).unwrap();
+    }
+    agent
+}
+
+#[test]
+fn a_loaded_checkpoint_continues_exactly_like_the_original() {
+    for algorithm in ALL {
+        let dir = tempfile::tempdir().unwrap();
+        let mut original = trained(algorithm, 3);
+        // Exploration state is part of it too.
+        original.act_slice(&[0.1; 5], true).unwrap();
+        let extra = serde_json::json!({"env": "state", "step": 42});
+        let path = checkpoint::save(dir.path(), &original, &extra, DEFAULT_KEEP).unwrap();
+        assert!(path.ends_with("ckpt-000000000003"));
+
+        let (mut restored, got_extra) = checkpoint::load(dir.path(), None).unwrap();
+        assert_eq!(got_extra, extra);
+        assert_eq!(restored.updates(), 3);
+        assert_eq!(restored.algorithm(), original.algorithm());
+        assert_eq!(state(&restored), state(&original), "{algorithm:?}");
+
+        let more = batches(6);
+        for b in &more[3..] {
+            let a = original.update(b).unwrap();
+            let r = restored.update(b).unwrap();
+            assert_eq!(a, r, "{algorithm:?}: stats differ after resume");
+        }
+        assert_eq!(
+            state(&restored),
+            state(&original),
+            "{algorithm:?} after 3 more updates"
+        );
+        assert_eq!(
+            restored.act_slice(&[0.2; 5], true).unwrap(),
+            original.act_slice(&[0.2; 5], true).unwrap(),
+            "{algorithm:?}: exploration noise resumes too"
+        );
+
+        // restore() into an agent built from the same config does the same.
+        let mut fresh = Agent::new(&cfg(algorithm), 5, 2).unwrap();
+        checkpoint::restore(&mut fresh, &path).unwrap();
+        assert_eq!(fresh.updates(), 3);
+    }
+}
+
+#[test]
+fn the_policy_file_holds_the_actor_alone_with_its_metadata() {
+    let dir = tempfile::tempdir().unwrap();
+    let agent = trained(AlgorithmKind::Sac, 2);
+    let path = checkpoint::save(dir.path(), &agent, &serde_json::Value::Null, 1).unwrap();
+    let exported = dir.path().join("exported.safetensors");
+    checkpoint::export_policy(&agent, &exported).unwrap();
+    for file in [path.join(POLICY), exported] {
+        let p = checkpoint::read_policy(&file).unwrap();
+        let m = &p.metadata;
+        assert_eq!(m["algorithm"], "sac");
+        assert_eq!(
+            (
+                m["obs_dim"].as_str(),
+                m["act_dim"].as_str(),
+                m["version"].as_str()
+            ),
+            ("5", "2", "2")
+        );
+        assert_eq!(
+            (m["sac.log_std_min"].as_str(), m["sac.log_std_max"].as_str()),
+            ("-20", "2")
+        );
+        assert_eq!(m["format"], "mapless-policy");
+        let names: Vec<&str> = p.tensors.iter().map(|t| t.0.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "actor.l0.bias",
+                "actor.l0.weight",
+                "actor.l1.bias",
+                "actor.l1.weight",
+                "actor.out.bias",
+                "actor.out.weight"
+            ]
+        );
+        let want: HashMap<String, Vec<f32>> = agent
+            .policy_tensors()
+            .into_iter()
+            .map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap()))
+            .collect();
+        for (name, shape, values) in &p.tensors {
+            assert_eq!(values, &want[name], "{name}");
+            if name == "actor.out.weight" {
+                assert_eq!(shape, &vec![4, 16], "SAC head: 2·act_dim rows");
+            }
+        }
+    }
+}
+
+fn saved(algorithm: AlgorithmKind) -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = checkpoint::save(
+        dir.path(),
+        &trained(algorithm, 1),
+        &serde_json::Value::Null,
+        1,
+    )
+    .unwrap();
+    (dir, path)
+}
+
+fn modify(path: &Path, f: impl FnOnce(&mut Vec<u8>)) {
+    let mut bytes = fs::read(path).unwrap();
+    f(&mut bytes);
+    fs::write(path, bytes).unwrap();
+}
+
+#[test]
+fn a_flipped_byte_is_a_checksum_error() {
+    let (_d, path) = saved(AlgorithmKind::Sac);
+    modify(&path.join(TENSORS), |b| {
+        let i = b.len() / 2;
+        b[i] ^= 0x40;
+    });
+    let e = checkpoint::load(&path, None).unwrap_err();
+    assert!(matches!(e, LearnerError::CheckpointCorrupt { .. }), "{e}");
+    assert!(e.to_string().contains("checksum mismatch"), "{e}");
+}
+
+#[test]
+fn a_truncated_file_is_reported_as_truncated() {
+    let (_d, path) = saved(AlgorithmKind::Td3);
+    modify(&path.join(TENSORS), |b| b.truncate(b.len() - 100));
+    let e = checkpoint::load(&path, None).unwrap_err();
+    assert!(matches!(e, LearnerError::CheckpointCorrupt { .. }), "{e}");
+    assert!(e.to_string().contains("truncated"), "{e}");
+    // An unparsable manifest (torn) is corrupt too, not a panic.
+    modify(&path.join(MANIFEST), |b| b.truncate(b.len() / 2));
+    let e = checkpoint::load(&path, None).unwrap_err();
+    assert!(matches!(e, LearnerError::CheckpointCorrupt { .. }), "{e}");
+}
+
+#[test]
+fn other_algorithms_dimensions_and_format_versions_are_mismatches() {
+    let (_d, path) = saved(AlgorithmKind::Sac);
+    let mut td3 = Agent::new(&cfg(AlgorithmKind::Td3), 5, 2).unwrap();
+    let e = checkpoint::restore(&mut td3, &path).unwrap_err();
+    assert!(
+        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "algorithm"),
+        "{e}"
+    );
+    assert!(
+        e.to_string().contains("algorithm is sac, expected td3"),
+        "{e}"
+    );
+
+    let mut wide = Agent::new(&cfg(AlgorithmKind::Sac), 6, 2).unwrap();
+    let e = checkpoint::restore(&mut wide, &path).unwrap_err();
+    assert!(
+        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "obs_dim"),
+        "{e}"
+    );
+
+    let mut c = cfg(AlgorithmKind::Sac);
+    c.hidden_width = 32;
+    let mut bigger = Agent::new(&c, 5, 2).unwrap();
+    let e = checkpoint::restore(&mut bigger, &path).unwrap_err();
+    assert!(
+        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "hidden_width"),
+        "{e}"
+    );
+
+    let manifest = path.join(MANIFEST);
+    let text = fs::read_to_string(&manifest)
+        .unwrap()
+        .replace("\"format_version\": 1", "\"format_version\": 2");
+    fs::write(&manifest, text).unwrap();
+    let e = checkpoint::load(&path, None).unwrap_err();
+    assert!(
+        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "format version"),
+        "{e}"
+    );
+}
+
+#[test]
+fn missing_pieces_are_errors_and_latest_always_names_a_complete_checkpoint() {
+    let root = tempfile::tempdir().unwrap();
+    let e = checkpoint::load(root.path(), None).unwrap_err();
+    assert!(e.to_string().contains("not a checkpoint"), "{e}");
+
+    let mut agent = trained(AlgorithmKind::Ddpg, 1);
+    let first = checkpoint::save(root.path(), &agent, &serde_json::Value::Null, 2).unwrap();
+    // A crash while writing the next one leaves only a temporary directory behind.
+    fs::create_dir_all(root.path().join(".ckpt-000000000002.tmp")).unwrap();
+    fs::write(
+        root.path().join(".ckpt-000000000002.tmp").join(TENSORS),
+        b"half",
+    )
+    .unwrap();
+    assert_eq!(checkpoint::resolve(root.path()).unwrap(), first);
+    assert_eq!(checkpoint::load(root.path(), None).unwrap().0.updates(), 1);
+
+    for b in batches(3) {
+        agent.update(&b).unwrap();
+        checkpoint::save(root.path(), &agent, &serde_json::Value::Null, 2).unwrap();
+    }
+    let mut kept: Vec<String> = fs::read_dir(root.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.starts_with("ckpt-"))
+        .collect();
+    kept.sort();
+    assert_eq!(
+        kept,
+        ["ckpt-000000000003", "ckpt-000000000004"],
+        "pruned to the newest 2"
+    );
+    assert_eq!(
+        fs::read_to_string(root.path().join(LATEST)).unwrap().trim(),
+        "ckpt-000000000004"
+    );
+    assert!(
+        !root.path().join(".ckpt-000000000002.tmp").exists(),
+        "stale temporary removed"
+    );
+
+    // Writing over an existing directory is refused; a missing file is corrupt.
+    let e = checkpoint::write_checkpoint(
+        &root.path().join("ckpt-000000000004"),
+        &agent,
+        &serde_json::Value::Null,
+    )
+    .unwrap_err();
+    assert!(matches!(e, LearnerError::CheckpointIo { .. }), "{e}");
+    fs::remove_file(root.path().join("ckpt-000000000004").join(POLICY)).unwrap();
+    let e = checkpoint::load(root.path(), None).unwrap_err();
+    assert!(e.to_string().contains("missing"), "{e}");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Resume of the whole Pendulum loop.
+// ---------------------------------------------------------------------------------------------
+
+const TOTAL: u64 = 1_500;
+const SPLIT: u64 = 750;
+const LEARNING_STARTS: u64 = 500;
+const SEED: u64 = 5;
+
+/// Runs the loop to TOTAL steps. `resume_at`: stop there, checkpoint the learner (with the
+/// loop state as `extra`), snapshot and close the replay table, drop everything, then reopen
+/// the table from its directory (rows, and the sampler's random stream, come back from its
+/// snapshot and log), load the checkpoint, and carry on.
+fn run(algorithm: AlgorithmKind, resume_at: Option<u64>) -> (HashMap<String, Vec<f32>>, Vec<f64>) {
+    let cfg = pendulum_config(algorithm, SEED);
+    let table_dir = tempfile::tempdir().unwrap();
+    let ckpt_dir = tempfile::tempdir().unwrap();
+    let table = Harness::persistent_table(&cfg, table_dir.path(), SEED);
+    let mut h = Harness::new(&cfg, table, SEED, LEARNING_STARTS);
+    while h.s.steps < TOTAL {
+        if Some(h.s.steps) == resume_at {
+            // Pcg64 holds u128s, which serde_json::Value cannot: stash the loop as a string.
+            let extra = serde_json::Value::String(serde_json::to_string(&h.s).unwrap());
+            checkpoint::save(ckpt_dir.path(), &h.agent, &extra, 1).unwrap();
+            h.table.snapshot().unwrap();
+            h.table.close();
+            drop(h);
+            let table = Harness::persistent_table(&cfg, table_dir.path(), SEED);
+            let (agent, extra) = checkpoint::load(ckpt_dir.path(), None).unwrap();
+            let s: LoopState = serde_json::from_str(extra.as_str().unwrap()).unwrap();
+            h = Harness {
+                agent,
+                table,
+                s,
+                learning_starts: LEARNING_STARTS,
+                batch: cfg.batch_size,
+            };
+        }
+        h.step();
+    }
+    let returns = h.s.returns.clone();
+    (state(&h.agent), returns)
+}
+
+fn assert_same(
+    a: &(HashMap<String, Vec<f32>>, Vec<f64>),
+    b: &(HashMap<String, Vec<f32>>, Vec<f64>),
+    what: &str,
+) {
+    assert_eq!(a.1, b.1, "{what}: episode returns differ");
+    assert_eq!(a.0.len(), b.0.len());
+    for (name, v) in &a.0 {
+        assert!(v == &b.0[name], "{what}: `{name}` differs after resume");
+    }
+}
+
+/// Learner, loop and replay table all resume exactly: networks, targets, Adam moments, α,
+/// counters, every random stream and the episode returns end bit-identical to a run that
+/// was never interrupted.
+#[test]
+fn a_resumed_pendulum_run_is_bit_identical_to_an_uninterrupted_one() {
+    mapless_learner::TorchThreads::default().apply().unwrap();
+    for algorithm in ALL {
+        let reference = run(algorithm, None);
+        let resumed = run(algorithm, Some(SPLIT));
+        assert_eq!(reference.1.len(), (TOTAL / 200) as usize);
+        assert_same(&reference, &resumed, algorithm.as_str());
+    }
+}
