@@ -12,6 +12,8 @@ set -euo pipefail
 root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$root"
 command -v cargo >/dev/null || { echo "run.sh: cargo not found; install Rust from https://rustup.rs" >&2; exit 1; }
+# `mapless` links the learner, hence libtorch: install torch 2.13.0 into .torch/ (once).
+bash "$root/scripts/setup-torch.sh"
 echo "run.sh: building mapless (release)…"
 cargo build --release --locked -p mapless-cli
 exec "$root/target/release/mapless" rollout --map env1 --steps 1000 --seed 0 --out "$root/runs/demo" "$@"

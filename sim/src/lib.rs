@@ -21,7 +21,6 @@ pub mod explore;
 mod font;
 mod image;
 pub mod map;
-pub mod pendulum;
 pub mod render;
 pub mod scene;
 pub mod sensor;
