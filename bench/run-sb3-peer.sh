@@ -39,8 +39,10 @@ mkdir -p "$OUT"
 MAPLESS="$ROOT/target/release/mapless"
 HAVE_OURS=0
 if [[ "${PEER_ONLY:-0}" != 1 ]]; then
-    if cargo build --release --quiet -p mapless-cli --manifest-path "$ROOT/Cargo.toml" \
-        && "$MAPLESS" bench learner --help > /dev/null 2>&1; then
+    # From the repository root, so cargo reads .cargo/config.toml (where libtorch is).
+    (cd "$ROOT" && cargo build --release --locked --quiet -p mapless-cli) \
+        || { echo "run-sb3-peer.sh: building mapless failed" >&2; exit 1; }
+    if "$MAPLESS" bench learner --help > /dev/null 2>&1; then
         HAVE_OURS=1
     else
         echo "== ours: skipped (no \`mapless bench learner\` subcommand in this build)" >&2
