@@ -6,6 +6,9 @@
 //!   mapless maps rasterize env2 --out DIR  a map as a ROS map_server map (YAML + PGM)
 //!   mapless rollout --map env1 --out DIR   one simulated episode: trajectory picture + JSON
 //!   mapless bench sim [--json]             simulator throughput (vehicle-steps/s)
+//!   mapless train --preset env1-sac        a local actor–learner cluster, supervised
+//!   mapless eval --run runs/NAME --map env3  the trained policy on any map, with pictures
+//!   mapless learner --config FILE          the learner process (started by `train`)
 //! ```
 
 use std::path::PathBuf;
@@ -17,6 +20,11 @@ use clap::{Parser, Subcommand, ValueEnum};
 use mapless_sim::render::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, RaycastMethod, RewardConfig, World};
 use rand::{Rng, SeedableRng};
+
+mod eval;
+mod learner_cmd;
+mod signals;
+mod train;
 
 #[derive(Parser)]
 #[command(name = "mapless", version, about = "Map-free exploration by deep RL: simulator, training cluster, tools")]
@@ -37,6 +45,21 @@ enum Cmd {
     },
     /// Drive one simulated episode and draw it.
     Rollout(RolloutArgs),
+    /// Train: replay, learner and N actor processes on this machine, supervised, with a live
+    /// progress line, curves and trajectories in the run folder.
+    Train(train::TrainArgs),
+    /// Evaluate a run's policy (deterministic) on any map: steps, EQS, EES, distance, shaded
+    /// time per episode and their means; a trajectory picture per episode.
+    Eval(EvalArgs),
+    /// The learner process of a cluster (what `mapless train` starts; also for other hosts).
+    Learner {
+        /// Learner config (YAML; `mapless train` writes `run/learner.yaml`).
+        #[arg(long)]
+        config: PathBuf,
+        /// Run name for the log lines.
+        #[arg(long, default_value = "")]
+        run: String,
+    },
     /// Measure throughput.
     Bench {
         #[command(subcommand)]
@@ -101,6 +124,29 @@ struct RolloutArgs {
     json: bool,
 }
 
+#[derive(clap::Args)]
+struct EvalArgs {
+    /// Run folder (its config.yaml and policy.safetensors).
+    #[arg(long)]
+    run: PathBuf,
+    /// Map [default: the run's training map].
+    #[arg(long)]
+    map: Option<String>,
+    #[arg(long, default_value_t = 10)]
+    episodes: u32,
+    /// Step limit per episode [default: the run's].
+    #[arg(long)]
+    max_steps: Option<u32>,
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    /// Pictures and eval.json go here [default: RUN/eval-MAP].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print the result as one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
 #[derive(Subcommand)]
 enum BenchCmd {
     /// Vehicle-steps per second on one core, per scan preset (7, 100, 1080 beams).
@@ -150,6 +196,24 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// The whole local cluster (`mapless train --preset env1-sac`): environment steps/s and
+    /// learner updates/s after start-up, with 1, 2 and 4 actor processes.
+    E2e {
+        /// Actor process counts to measure.
+        #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
+        actors: Vec<usize>,
+        /// Wall seconds per configuration (the first 20 s are start-up and not counted).
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        /// Vehicles per actor process.
+        #[arg(long, default_value_t = 4)]
+        vehicles: usize,
+        /// Extra config overrides for every run (`--set KEY=VALUE`, as for `train`).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() {
@@ -175,10 +239,41 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Maps { cmd: MapsCmd::Show { map, out, px_per_m } } => maps_show(&map, &out, px_per_m),
         Cmd::Maps { cmd: MapsCmd::Rasterize { map, resolution, out } } => maps_rasterize(&map, resolution, &out),
         Cmd::Rollout(a) => rollout(a),
+        Cmd::Train(a) => train::train(&a),
+        Cmd::Eval(a) => eval_cmd(&a),
+        Cmd::Learner { config, run } => {
+            let span = tracing::info_span!("learner", run = %run, role = "learner");
+            let _e = span.enter();
+            learner_cmd::run(&config)
+        }
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
         Cmd::Bench { cmd: BenchCmd::Learner { seconds, device, threads, algos, unfused, json } } => bench_learner(seconds, &device, &threads, &algos, unfused, json),
+        Cmd::Bench { cmd: BenchCmd::E2e { actors, seconds, vehicles, set, json } } => bench_e2e(&actors, seconds, vehicles, &set, json),
     }
+}
+
+fn eval_cmd(a: &EvalArgs) -> Result<()> {
+    let text = std::fs::read_to_string(a.run.join("config.yaml")).with_context(|| format!("{} is not a run folder (no config.yaml)", a.run.display()))?;
+    let cfg: train::TrainConfig = serde_yaml::from_str(&text)?;
+    let mut env = cfg.env.clone();
+    if let Some(m) = a.max_steps {
+        env.episode.max_steps = m;
+    }
+    let map = a.map.clone().unwrap_or_else(|| cfg.map.clone());
+    let out = a.out.clone().unwrap_or_else(|| a.run.join(format!("eval-{}", map.replace(['/', '.'], "_"))));
+    let s = eval::evaluate(&a.run.join("policy.safetensors"), &map, &env, a.episodes, a.seed, Some(&out))?;
+    if a.json {
+        println!("{}", serde_json::to_string(&s)?);
+    } else {
+        println!("{:>3} {:>6} {:>9} {:>5} {:>6} {:>9} {:>8}", "ep", "steps", "return", "EQS", "EES", "dist m", "shade s");
+        for e in &s.episodes {
+            println!("{:>3} {:>6} {:>9.1} {:>5} {:>6.2} {:>9.1} {:>8.1}{}", e.episode, e.steps, e.episode_return, e.eqs, e.ees, e.distance_m, e.shaded_time_s, if e.collided { "  collision" } else { "" });
+        }
+        println!("mean {:>6.0} {:>9.1} {:>5.1} {:>6.2} {:>9.1} {:>8.1}  ({} collisions)", s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.mean_shaded_time_s, s.collisions);
+        println!("pictures and eval.json in {}", out.display());
+    }
+    Ok(())
 }
 
 fn maps_list() -> Result<()> {
@@ -303,6 +398,37 @@ fn report(json: bool, bench: &str, config: serde_json::Value, value: f64, unit: 
     } else {
         println!("  {bench:<34} {:<58} {value:>14.1} {unit}", config.to_string());
     }
+}
+
+fn bench_e2e(actors: &[usize], seconds: f64, vehicles: usize, set: &[String], json: bool) -> Result<()> {
+    if !(seconds > 25.0) || actors.is_empty() || actors.contains(&0) || vehicles == 0 {
+        bail!("--seconds must be > 25 (20 s of start-up are not counted), --actors and --vehicles >= 1");
+    }
+    let exe = std::env::current_exe()?;
+    let dir = tempfile::tempdir()?;
+    if !json {
+        println!("local cluster (env1-sac preset, replay + learner + N actors × {vehicles} vehicles), {seconds} s each, counted after 20 s of start-up");
+    }
+    for &n in actors {
+        let run = dir.path().join(format!("e2e-{n}"));
+        eprintln!("bench e2e: {n} actor(s), {seconds} s ...");
+        let mut cmd = std::process::Command::new(&exe);
+        cmd.args(["train", "--preset", "env1-sac", "--force", "--actors", &n.to_string(), "--vehicles", &vehicles.to_string(), "--minutes", &(seconds / 60.0).to_string()]);
+        cmd.arg("--run").arg(&run);
+        for s in ["eval.episodes=0", "stop.average_return=null", "stop.average_steps=null", "replay_persistence=false"].iter().map(|s| s.to_string()).chain(set.iter().cloned()) {
+            cmd.args(["--set", &s]);
+        }
+        let out = cmd.stdin(std::process::Stdio::null()).stderr(std::process::Stdio::null()).status()?;
+        if !out.success() {
+            bail!("mapless train with {n} actors failed ({out}); run it by hand to see why");
+        }
+        let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("summary.json"))?)?;
+        let steady = &summary["steady"];
+        let config = serde_json::json!({"preset": "env1-sac", "actors": n, "vehicles_per_actor": vehicles, "seconds": steady["seconds"], "cores": std::thread::available_parallelism().map(|c| c.get()).unwrap_or(0)});
+        report(json, "e2e.env_steps_per_s", config.clone(), steady["env_steps_per_s"].as_f64().unwrap_or(f64::NAN), "steps/s");
+        report(json, "e2e.learner_updates_per_s", config, steady["updates_per_s"].as_f64().unwrap_or(f64::NAN), "updates/s");
+    }
+    Ok(())
 }
 
 fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {

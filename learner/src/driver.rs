@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use mapless_proto::v1::WeightsSnapshot;
 use serde::{Deserialize, Serialize};
@@ -164,11 +164,27 @@ impl Driver {
 
     /// One update on the next minibatch, with everything that is due after it.
     pub fn step(&mut self) -> Result<(), LearnerError> {
+        self.step_within(None).map(|_| ())
+    }
+
+    /// Like [`Driver::step`], but waits at most about `wait` for the minibatch (the replay's
+    /// rate limiter may hold it back); `Ok(false)` when none came and nothing was done.
+    pub fn try_step(&mut self, wait: Duration) -> Result<bool, LearnerError> {
+        self.step_within(Some(wait))
+    }
+
+    fn step_within(&mut self, wait: Option<Duration>) -> Result<bool, LearnerError> {
         if self.version == 0 {
             // Actors wait for weights: give them the initial policy before the first update.
             self.publish()?;
         }
-        let sampled = self.source.next_batch()?;
+        let sampled = match wait {
+            None => self.source.next_batch()?,
+            Some(w) => match self.source.next_batch_timeout(w)? {
+                Some(b) => b,
+                None => return Ok(false),
+            },
+        };
         let batch = Minibatch::from_sampled(&sampled, self.agent.device())?;
         let stats = self.agent.update(&batch)?;
         if self.cfg.send_priorities && !stats.td_errors.is_empty() {
@@ -188,7 +204,7 @@ impl Driver {
         if n % self.cfg.metrics_every == 0 {
             self.report_metrics(n);
         }
-        Ok(())
+        Ok(true)
     }
 
     fn report_metrics(&mut self, n: u64) {
@@ -226,7 +242,8 @@ impl Driver {
         let start = Instant::now();
         let first = self.agent.updates();
         while !stop.load(Ordering::Relaxed) && max_updates.is_none_or(|m| self.agent.updates() - first < m) {
-            self.step()?;
+            // Short waits, so a stop request is seen while the replay holds sampling back.
+            self.try_step(Duration::from_millis(200))?;
         }
         let updates = self.agent.updates() - first;
         if updates > 0 && self.agent.updates() % self.cfg.publish_every != 0 {

@@ -192,3 +192,15 @@ pub enum LearnerError {
         found: String,
     },
 }
+
+impl From<mapless_actor::net::NetError> for LearnerError {
+    fn from(e: mapless_actor::net::NetError) -> Self {
+        use mapless_actor::net::NetError;
+        match e {
+            NetError::Grpc { service, endpoint, code, message } => LearnerError::Grpc { service, endpoint, code, message },
+            NetError::Config { reason } => LearnerError::ReplaySourceConfig { reason },
+            NetError::FileIo { path, error } => LearnerError::FileIo { path, error },
+            NetError::Invalid { origin, reason } => LearnerError::InvalidWeights { origin, reason },
+        }
+    }
+}

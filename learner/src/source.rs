@@ -18,7 +18,7 @@
 //!
 //! Everything here is libtorch-free.
 
-use std::path::Path;
+
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
@@ -33,12 +33,14 @@ use mapless_proto::v1::{
 };
 use mapless_replay::Table;
 use tokio::sync::{Notify, watch};
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
-use tonic::{Code, Request, Status};
+use tonic::Code;
+use tonic::transport::Channel;
 use tracing::{debug, info, warn};
 
 use crate::error::LearnerError;
+/// Where a gRPC service is and how to reach it (moved to the libtorch-free actor crate, which
+/// shares it).
+pub use mapless_actor::net::GrpcEndpoint;
 
 // ---------------------------------------------------------------------------------------------
 // The trait
@@ -59,6 +61,14 @@ pub trait ReplaySource: Send {
 
     /// Counters since the source was created.
     fn stats(&self) -> SourceStats;
+
+    /// Like [`ReplaySource::next_batch`], but waits at most about `timeout`: `Ok(None)` when no
+    /// minibatch came in time (so a caller can look at its stop flag). The default waits as
+    /// long as `next_batch` does.
+    fn next_batch_timeout(&mut self, timeout: Duration) -> Result<Option<SampledBatch>, LearnerError> {
+        let _ = timeout;
+        self.next_batch().map(Some)
+    }
 }
 
 /// What a source has done and what went wrong, for logs and TensorBoard.
@@ -212,230 +222,6 @@ impl ReplaySource for InProcess {
 }
 
 // ---------------------------------------------------------------------------------------------
-// gRPC endpoint (shared with the weights client)
-// ---------------------------------------------------------------------------------------------
-
-/// Where a gRPC service is and how to reach it: the URI, optional TLS (a CA certificate to
-/// trust, and the name to check it against) and an optional bearer token, sent as
-/// `authorization: Bearer <token>` on every call (what the replay and weights services check).
-///
-/// `http://` URIs are plain HTTP/2 (the services allow that on loopback only); `https://`
-/// needs [`GrpcEndpoint::with_tls`].
-#[derive(Clone)]
-pub struct GrpcEndpoint {
-    uri: String,
-    tls_ca_pem: Option<Vec<u8>>,
-    tls_domain: Option<String>,
-    token: Option<String>,
-    connect_timeout: Duration,
-}
-
-impl std::fmt::Debug for GrpcEndpoint {
-    // Never print the token.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GrpcEndpoint")
-            .field("uri", &self.uri)
-            .field("tls", &self.tls_ca_pem.is_some())
-            .field("tls_domain", &self.tls_domain)
-            .field("token", &self.token.is_some())
-            .finish()
-    }
-}
-
-impl From<&str> for GrpcEndpoint {
-    fn from(uri: &str) -> Self {
-        Self::new(uri)
-    }
-}
-
-impl From<String> for GrpcEndpoint {
-    fn from(uri: String) -> Self {
-        Self::new(uri)
-    }
-}
-
-impl GrpcEndpoint {
-    /// An endpoint at `uri`, e.g. `http://127.0.0.1:50051`; a bare `host:port` means
-    /// `http://host:port`.
-    pub fn new(uri: impl Into<String>) -> Self {
-        let uri = uri.into();
-        let uri = if uri.contains("://") {
-            uri
-        } else {
-            format!("http://{uri}")
-        };
-        Self {
-            uri,
-            tls_ca_pem: None,
-            tls_domain: None,
-            token: None,
-            connect_timeout: Duration::from_secs(5),
-        }
-    }
-
-    /// Use TLS, trusting `ca_pem` (PEM certificate(s)); `domain` overrides the name the
-    /// server's certificate is checked against (default: the URI's host). Switches an
-    /// `http://` URI to `https://`.
-    pub fn with_tls(mut self, ca_pem: impl Into<Vec<u8>>, domain: Option<String>) -> Self {
-        if let Some(rest) = self.uri.strip_prefix("http://") {
-            self.uri = format!("https://{rest}");
-        }
-        self.tls_ca_pem = Some(ca_pem.into());
-        self.tls_domain = domain;
-        self
-    }
-
-    /// [`GrpcEndpoint::with_tls`] with the CA read from a PEM file.
-    pub fn with_tls_ca_file(
-        self,
-        path: &Path,
-        domain: Option<String>,
-    ) -> Result<Self, LearnerError> {
-        let pem = std::fs::read(path).map_err(|error| LearnerError::FileIo {
-            path: path.to_owned(),
-            error,
-        })?;
-        Ok(self.with_tls(pem, domain))
-    }
-
-    /// Send `authorization: Bearer <token>` on every call.
-    pub fn with_token(mut self, token: impl Into<String>) -> Self {
-        self.token = Some(token.into());
-        self
-    }
-
-    /// [`GrpcEndpoint::with_token`] with the token read from a file (trimmed), as the replay
-    /// server reads its own: a file keeps the token out of `ps`.
-    pub fn with_token_file(self, path: &Path) -> Result<Self, LearnerError> {
-        let raw = std::fs::read(path).map_err(|error| LearnerError::FileIo {
-            path: path.to_owned(),
-            error,
-        })?;
-        let token = String::from_utf8_lossy(&raw).trim().to_owned();
-        if token.is_empty() {
-            return Err(LearnerError::ReplaySourceConfig {
-                reason: format!("token file {} is empty", path.display()),
-            });
-        }
-        Ok(self.with_token(token))
-    }
-
-    /// Longest a connection attempt may take [default 5 s].
-    pub fn with_connect_timeout(mut self, timeout: Duration) -> Self {
-        self.connect_timeout = timeout;
-        self
-    }
-
-    /// The URI dialled.
-    pub fn uri(&self) -> &str {
-        &self.uri
-    }
-
-    /// Checks everything that can be checked without dialling: the URI, TLS settings, token.
-    pub fn check(&self) -> Result<(), LearnerError> {
-        self.endpoint()?;
-        self.token_value()?;
-        Ok(())
-    }
-
-    fn config_error(&self, reason: String) -> LearnerError {
-        LearnerError::ReplaySourceConfig {
-            reason: format!("endpoint `{}`: {reason}", self.uri),
-        }
-    }
-
-    fn endpoint(&self) -> Result<Endpoint, LearnerError> {
-        let mut endpoint = Endpoint::from_shared(self.uri.clone())
-            .map_err(|e| self.config_error(format!("not a valid URI: {e}")))?
-            .connect_timeout(self.connect_timeout)
-            .tcp_nodelay(true)
-            .http2_keep_alive_interval(Duration::from_secs(10))
-            .keep_alive_timeout(Duration::from_secs(20))
-            .keep_alive_while_idle(true);
-        match &self.tls_ca_pem {
-            Some(ca) => {
-                let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(ca));
-                if let Some(domain) = &self.tls_domain {
-                    tls = tls.domain_name(domain.clone());
-                }
-                endpoint = endpoint
-                    .tls_config(tls)
-                    .map_err(|e| self.config_error(format!("TLS: {e}")))?;
-            }
-            None if self.uri.starts_with("https://") => {
-                return Err(self.config_error(
-                    "https:// needs a CA certificate to trust (GrpcEndpoint::with_tls)".into(),
-                ));
-            }
-            None => {}
-        }
-        Ok(endpoint)
-    }
-
-    fn token_value(&self) -> Result<Option<MetadataValue<Ascii>>, LearnerError> {
-        self.token
-            .as_ref()
-            .map(|t| {
-                format!("Bearer {t}")
-                    .parse::<MetadataValue<Ascii>>()
-                    .map_err(|_| {
-                        self.config_error("the bearer token is not printable ASCII".into())
-                    })
-            })
-            .transpose()
-    }
-
-    /// Dials the service; failures are [`LearnerError::Grpc`] with code UNAVAILABLE.
-    pub(crate) async fn connect(&self, service: &'static str) -> Result<Channel, LearnerError> {
-        self.endpoint()?
-            .connect()
-            .await
-            .map_err(|e| LearnerError::Grpc {
-                service,
-                endpoint: self.uri.clone(),
-                code: Code::Unavailable,
-                message: format!("cannot connect: {}", error_chain(&e)),
-            })
-    }
-
-    /// `message` as a request carrying the bearer token, if any.
-    pub(crate) fn request<T>(
-        &self,
-        _service: &'static str,
-        message: T,
-    ) -> Result<Request<T>, LearnerError> {
-        let mut request = Request::new(message);
-        if let Some(value) = self.token_value()? {
-            request.metadata_mut().insert("authorization", value);
-        }
-        Ok(request)
-    }
-
-    /// A status from the peer as a [`LearnerError::Grpc`].
-    pub(crate) fn status_error(&self, service: &'static str, status: &Status) -> LearnerError {
-        LearnerError::Grpc {
-            service,
-            endpoint: self.uri.clone(),
-            code: status.code(),
-            message: status.message().to_owned(),
-        }
-    }
-}
-
-/// An error and its causes on one line (tonic's transport errors hide the useful part in
-/// their sources).
-fn error_chain(error: &dyn std::error::Error) -> String {
-    let mut text = error.to_string();
-    let mut source = error.source();
-    while let Some(cause) = source {
-        text.push_str(": ");
-        text.push_str(&cause.to_string());
-        source = cause.source();
-    }
-    text
-}
-
-// ---------------------------------------------------------------------------------------------
 // gRPC source
 // ---------------------------------------------------------------------------------------------
 
@@ -506,7 +292,7 @@ impl GrpcSourceConfig {
         {
             return bad("expected_dims must be >= 1".into());
         }
-        self.endpoint.check()
+        Ok(self.endpoint.check()?)
     }
 }
 
@@ -657,6 +443,10 @@ impl GrpcSource {
 }
 
 impl ReplaySource for GrpcSource {
+    fn next_batch_timeout(&mut self, timeout: Duration) -> Result<Option<SampledBatch>, LearnerError> {
+        GrpcSource::next_batch_timeout(self, timeout)
+    }
+
     fn next_batch(&mut self) -> Result<SampledBatch, LearnerError> {
         if let Some(reason) = &self.stopped {
             return Err(LearnerError::ReplaySourceStopped {
@@ -773,11 +563,11 @@ async fn open_stream(config: &GrpcSourceConfig, shared: &Shared) -> Result<OpenS
                 protocol_version: ProtocolVersion::V1 as i32,
             },
         )
-        .map_err(OpenError::Fatal)?;
+        .map_err(|e| OpenError::Fatal(e.into()))?;
     let info = client
         .server_info(info_request)
         .await
-        .map_err(|s| classify(endpoint.status_error("replay", &s)))?
+        .map_err(|s| classify(endpoint.status_error("replay", &s).into()))?
         .into_inner();
     if !config.table.is_empty() && config.table != info.table {
         return Err(OpenError::Fatal(LearnerError::Grpc {
@@ -823,11 +613,11 @@ async fn open_stream(config: &GrpcSourceConfig, shared: &Shared) -> Result<OpenS
                 ..SampleRequest::default()
             },
         )
-        .map_err(OpenError::Fatal)?;
+        .map_err(|e| OpenError::Fatal(e.into()))?;
     let stream = client
         .sample(request)
         .await
-        .map_err(|s| classify(endpoint.status_error("replay", &s)))?
+        .map_err(|s| classify(endpoint.status_error("replay", &s).into()))?
         .into_inner();
     Ok(OpenStream {
         stream,
@@ -936,7 +726,7 @@ async fn sample_loop(
                             break;
                         }
                         Err(status) => {
-                            let error = config.endpoint.status_error("replay", &status);
+                            let error: LearnerError = config.endpoint.status_error("replay", &status).into();
                             if is_fatal(status.code()) {
                                 warn!(error = %error, "replay sample stream failed for good");
                                 shared.record_error(&shared.stream_errors, &error.to_string());
@@ -1061,5 +851,5 @@ async fn send_priorities(
     c.update_priorities(request)
         .await
         .map(tonic::Response::into_inner)
-        .map_err(|s| config.endpoint.status_error("replay", &s))
+        .map_err(|s| config.endpoint.status_error("replay", &s).into())
 }

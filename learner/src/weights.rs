@@ -51,7 +51,6 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use mapless_proto::v1::weights_service_client::WeightsServiceClient;
 use mapless_proto::v1::weights_service_server::{WeightsService, WeightsServiceServer};
 use mapless_proto::v1::{
     Algorithm, Dtype, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot,
@@ -485,94 +484,32 @@ pub async fn serve(
 // ---------------------------------------------------------------------------------------------
 
 /// An open Subscribe stream, checked: every snapshot passes [`WeightsSnapshot::validate`] and
-/// versions strictly increase.
-pub struct WeightsSubscription {
-    stream: tonic::Streaming<WeightsSnapshot>,
-    endpoint: String,
-    last_version: u64,
-}
-
-impl std::fmt::Debug for WeightsSubscription {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WeightsSubscription")
-            .field("endpoint", &self.endpoint)
-            .field("last_version", &self.last_version)
-            .finish()
-    }
-}
+/// versions strictly increase. (The client lives in the libtorch-free `mapless-actor`
+/// crate; this wrapper speaks [`LearnerError`].)
+#[derive(Debug)]
+pub struct WeightsSubscription(mapless_actor::weights::WeightsSubscription);
 
 /// Opens a Subscribe stream at `endpoint` for versions `>= min_version` (0 or 1: any).
-/// `subscriber_id` (e.g. the actor id) appears in the server's logs; it may be empty.
-///
-/// Fails with [`LearnerError::Grpc`] when the server cannot be reached or refuses (e.g.
-/// FAILED_PRECONDITION for a protocol mismatch, UNAUTHENTICATED for a wrong token).
+/// See [`mapless_actor::weights::subscribe`].
 pub async fn subscribe(
     endpoint: &GrpcEndpoint,
     min_version: u64,
     subscriber_id: &str,
 ) -> Result<WeightsSubscription, LearnerError> {
-    let channel = endpoint.connect("weights").await?;
-    let mut client = WeightsServiceClient::new(channel)
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let request = endpoint.request(
-        "weights",
-        SubscribeRequest {
-            protocol_version: ProtocolVersion::V1 as i32,
-            min_version,
-            subscriber_id: subscriber_id.to_owned(),
-        },
-    )?;
-    let stream = client
-        .subscribe(request)
-        .await
-        .map_err(|s| endpoint.status_error("weights", &s))?
-        .into_inner();
-    Ok(WeightsSubscription {
-        stream,
-        endpoint: endpoint.uri().to_owned(),
-        last_version: min_version.saturating_sub(1),
-    })
+    Ok(WeightsSubscription(
+        mapless_actor::weights::subscribe(endpoint, min_version, subscriber_id).await?,
+    ))
 }
 
 impl WeightsSubscription {
-    /// The next snapshot: waits until the learner publishes a newer version. `Ok(None)` when
-    /// the server ended the stream without an error status; an error when it ended with one
-    /// (UNAVAILABLE on shutdown: reconnect with `min_version = last_version() + 1`), or when
-    /// a snapshot is invalid or not newer than the previous one.
+    /// The next snapshot; see [`mapless_actor::weights::WeightsSubscription::next`].
     pub async fn next(&mut self) -> Result<Option<WeightsSnapshot>, LearnerError> {
-        let snapshot = match self.stream.message().await {
-            Ok(Some(s)) => s,
-            Ok(None) => return Ok(None),
-            Err(status) => {
-                return Err(LearnerError::Grpc {
-                    service: "weights",
-                    endpoint: self.endpoint.clone(),
-                    code: status.code(),
-                    message: status.message().to_owned(),
-                });
-            }
-        };
-        let origin = || format!("{} version {}", self.endpoint, snapshot.version);
-        snapshot
-            .validate()
-            .map_err(|e| invalid(origin(), e.to_string()))?;
-        if snapshot.version <= self.last_version {
-            return Err(invalid(
-                origin(),
-                format!(
-                    "not newer than the previous version {}; the server broke the strictly-increasing rule",
-                    self.last_version
-                ),
-            ));
-        }
-        self.last_version = snapshot.version;
-        Ok(Some(snapshot))
+        Ok(self.0.next().await?)
     }
 
     /// Highest version received on this stream (`min_version - 1` before the first).
     pub fn last_version(&self) -> u64 {
-        self.last_version
+        self.0.last_version()
     }
 }
 

@@ -21,6 +21,7 @@ pub mod explore;
 mod font;
 mod image;
 pub mod map;
+pub mod plot;
 pub mod render;
 pub mod scene;
 pub mod sensor;

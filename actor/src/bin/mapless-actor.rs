@@ -1,0 +1,81 @@
+//! `mapless-actor`: one actor process (no libtorch). Started by `mapless train` on this host,
+//! or by hand / by an orchestrator on other hosts with a config file that points at the
+//! replay and the learner.
+//!
+//! ```text
+//!   mapless-actor --config run/actor.yaml --index 3 [--max-steps N] [--log-json]
+//! ```
+//! Runs until SIGINT/SIGTERM (then sends what it holds and waits for the acknowledgements),
+//! or until `--max-steps` vehicle-steps; prints its final counters as one JSON line.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::Context as _;
+use clap::Parser;
+use mapless_actor::run::{ActorConfig, incarnation_id, run};
+
+#[derive(Parser)]
+#[command(name = "mapless-actor", version, about = "A mapless actor process: vehicles, policy inference, transitions to the replay")]
+struct Cli {
+    /// Actor config (YAML; `mapless train` writes one into the run folder).
+    #[arg(long)]
+    config: PathBuf,
+    /// This process's index (seeds and the actor id derive from it).
+    #[arg(long, default_value_t = 0)]
+    index: usize,
+    /// Stop after this many vehicle-steps.
+    #[arg(long)]
+    max_steps: Option<u64>,
+    /// Run name, shown on every log line.
+    #[arg(long, default_value = "")]
+    run: String,
+    /// Log as JSON lines.
+    #[arg(long)]
+    log_json: bool,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,iceoryx2=warn".into());
+    if cli.log_json {
+        tracing_subscriber::fmt().json().with_env_filter(filter).with_writer(std::io::stderr).init();
+    } else {
+        tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).init();
+    }
+    let actor_id = incarnation_id(cli.index);
+    let span = tracing::info_span!("actor", run = %cli.run, role = "actor", actor_id = %actor_id);
+    let _enter = span.enter();
+    match main_inner(&cli, &actor_id) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn main_inner(cli: &Cli, actor_id: &str) -> anyhow::Result<()> {
+    let text = std::fs::read_to_string(&cli.config).with_context(|| format!("reading {}", cli.config.display()))?;
+    let cfg: ActorConfig = serde_yaml::from_str(&text).with_context(|| format!("parsing {}", cli.config.display()))?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let on_signal = Arc::clone(&stop);
+    std::thread::Builder::new().name("signals".into()).spawn(move || {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else { return };
+        rt.block_on(async {
+            let Ok(mut term) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) else { return };
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+        });
+        tracing::info!("signal received; stopping");
+        on_signal.store(true, Ordering::Relaxed);
+    })?;
+    tracing::info!(map = %cfg.map, vehicles = cfg.vehicles, "actor starting");
+    let report = run(&cfg, cli.index, actor_id, stop, cli.max_steps)?;
+    println!("{}", serde_json::to_string(&report)?);
+    Ok(())
+}

@@ -1,0 +1,343 @@
+//! One actor process: many vehicles in one world, acting with the newest published policy,
+//! streaming every transition to the replay and every finished episode to the stats collector.
+//!
+//! ```text
+//!   weights stream ──follow──► newest snapshot ──(between steps)──► Policy (pure Rust)
+//!   VecEnv obs ──► Policy / uniform warm-up ──► + exploration ──► VecEnv::step
+//!        └─ rows (obs, action, reward, next_obs, terminal, truncated, policy version) ─► batch
+//!   batch of `batch_rows` ──► Sink (iceoryx2 or gRPC; acked, resent, de-duplicated)
+//!   finished episodes ──► StatsService.Report (best effort)
+//! ```
+//!
+//! Exploration (issue 5): uniform random actions until the first weights arrive and for the
+//! first `warmup_steps` vehicle-steps; then SAC samples from its own distribution, TD3 adds
+//! Gaussian noise and DDPG Ornstein–Uhlenbeck noise (reset at each episode start).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use mapless_proto::v1::{EpisodeStats, ProtocolVersion, WeightsSnapshot};
+use mapless_proto::{Transition, TransitionBatchBuilder};
+use mapless_replay::shm::ShmConfig;
+use mapless_sim::{EnvConfig, Map, VecEnv, VecStep, World};
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use serde::{Deserialize, Serialize};
+use tokio::sync::{mpsc, watch};
+
+use crate::net::GrpcEndpoint;
+use crate::sink::{GrpcSink, ShmSink, Sink, SinkStats};
+use crate::{ActMode, Noise, NoiseConfig, Policy};
+
+/// How an actor reaches the replay.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ReplayTarget {
+    /// iceoryx2 shared memory (the replay runs on this host).
+    Shm {
+        /// The ingest's service-name prefix and domain, as the replay service was given.
+        prefix: String,
+        #[serde(default)]
+        domain: String,
+    },
+    /// gRPC `Insert`, e.g. `http://127.0.0.1:50051`.
+    Grpc { uri: String },
+}
+
+/// TLS and token for services on other hosts (optional on loopback).
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct Security {
+    /// PEM CA certificate to trust (switches `http://` to `https://`).
+    pub tls_ca_file: Option<PathBuf>,
+    /// Name to check the servers' certificates against (default: the URI's host).
+    pub tls_domain: Option<String>,
+    /// File holding the bearer token.
+    pub token_file: Option<PathBuf>,
+}
+
+impl Security {
+    /// `uri` with this TLS and token.
+    pub fn endpoint(&self, uri: &str) -> Result<GrpcEndpoint, crate::net::NetError> {
+        let mut e = GrpcEndpoint::new(uri);
+        if let Some(ca) = &self.tls_ca_file {
+            e = e.with_tls_ca_file(ca, self.tls_domain.clone())?;
+        }
+        if let Some(t) = &self.token_file {
+            e = e.with_token_file(t)?;
+        }
+        e.check()?;
+        Ok(e)
+    }
+}
+
+/// Exploration while training.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ExplorationSettings {
+    /// Vehicle-steps of uniform random actions at the start of each actor process (the
+    /// policy is used only after these and once weights have arrived).
+    pub warmup_steps: u64,
+    /// Noise added to deterministic policies (DDPG: OU, TD3: Gaussian); SAC: none.
+    pub noise: NoiseConfig,
+}
+
+impl Default for ExplorationSettings {
+    fn default() -> Self {
+        ExplorationSettings { warmup_steps: 1_000, noise: NoiseConfig::None }
+    }
+}
+
+/// Everything one actor process needs.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ActorConfig {
+    /// Built-in map name or path to a map YAML.
+    pub map: String,
+    /// Simulator settings (vehicle, sensor, reward, step limit, EQS grid).
+    pub env: EnvConfig,
+    /// Vehicles simulated by this process.
+    pub vehicles: usize,
+    /// Exploration.
+    #[serde(default)]
+    pub exploration: ExplorationSettings,
+    /// Transitions per batch sent to the replay.
+    pub batch_rows: usize,
+    /// Batches unacknowledged at most.
+    #[serde(default = "default_in_flight")]
+    pub max_in_flight: usize,
+    /// The replay.
+    pub replay: ReplayTarget,
+    /// The learner's weights service, e.g. `http://127.0.0.1:50052`.
+    pub weights: String,
+    /// The run's stats collector; none: episodes are only logged.
+    #[serde(default)]
+    pub stats: Option<String>,
+    /// TLS and token for the gRPC services.
+    #[serde(default)]
+    pub security: Security,
+    /// Base seed; process `index` uses its own streams derived from it.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_in_flight() -> usize {
+    8
+}
+
+impl ActorConfig {
+    /// Checks what can be checked without connecting.
+    pub fn validate(&self) -> Result<(), String> {
+        self.env.validate().map_err(|e| e.to_string())?;
+        if self.vehicles == 0 || self.vehicles > 4096 {
+            return Err(format!("vehicles must be in 1..=4096, got {}", self.vehicles));
+        }
+        if self.batch_rows == 0 || self.batch_rows > 65_536 {
+            return Err(format!("batch_rows must be in 1..=65536, got {}", self.batch_rows));
+        }
+        if self.max_in_flight == 0 {
+            return Err("max_in_flight must be >= 1".into());
+        }
+        Ok(())
+    }
+}
+
+/// Counters of a finished (or stopped) actor.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ActorReport {
+    pub actor_id: String,
+    pub vehicle_steps: u64,
+    pub episodes: u64,
+    pub policy_version: u64,
+    pub policies_loaded: u64,
+    pub bad_snapshots: u64,
+    pub unacked_at_exit: bool,
+    pub sink: SinkStats,
+}
+
+/// An actor id unique to this incarnation: `actor-<index>-<pid>-<unix ms>` (a restarted
+/// actor must not reuse its predecessor's id, whose sequence numbers the replay remembers).
+pub fn incarnation_id(index: usize) -> String {
+    let ms = SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis()).unwrap_or(0);
+    format!("actor-{index}-{}-{ms}", std::process::id())
+}
+
+fn unix_ms() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+}
+
+/// Runs actor process `index` until `stop` turns true or `max_vehicle_steps` (if any) have been
+/// taken; then sends what is left and waits (up to 10 s) for the acknowledgements.
+pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool>, max_vehicle_steps: Option<u64>) -> anyhow::Result<ActorReport> {
+    cfg.validate().map_err(|e| anyhow::anyhow!("actor config: {e}"))?;
+    let map = Map::resolve(&cfg.map)?;
+    let map_name = cfg.map.clone();
+    let world = World::new(map, cfg.env.clone())?;
+    let seed = cfg.seed.wrapping_add((index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut envs = VecEnv::new(world, cfg.vehicles, seed)?;
+    let (n, d) = (envs.len(), envs.obs_dim());
+    let mut rng = Pcg64::seed_from_u64(seed ^ 0xA5A5_5A5A);
+
+    // One tokio worker for the weights follower, the stats reporter and the gRPC sink.
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).thread_name("actor-io").enable_all().build()?;
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let (weights_tx, mut weights_rx) = watch::channel::<Option<Arc<WeightsSnapshot>>>(None);
+    let weights_endpoint = cfg.security.endpoint(&cfg.weights)?;
+    rt.spawn(crate::weights::follow(weights_endpoint, actor_id.to_owned(), weights_tx, stop_rx.clone()));
+    let stats_tx = match &cfg.stats {
+        Some(uri) => {
+            let (tx, rx) = mpsc::channel::<EpisodeStats>(4096);
+            rt.spawn(crate::stats::report(cfg.security.endpoint(uri)?, rx));
+            Some(tx)
+        }
+        None => None,
+    };
+    let mut sink = match &cfg.replay {
+        ReplayTarget::Shm { prefix, domain } => {
+            let mut shm = ShmConfig { prefix: prefix.clone(), domain: domain.clone(), ..ShmConfig::default() };
+            shm.max_in_flight = cfg.max_in_flight;
+            match ShmSink::connect(shm, actor_id, &stop) {
+                Ok(s) => Sink::Shm(s),
+                Err(_) => return Ok(ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() }),
+            }
+        }
+        ReplayTarget::Grpc { uri } => Sink::Grpc(GrpcSink::new(rt.handle().clone(), cfg.security.endpoint(uri)?, cfg.max_in_flight)),
+    };
+
+    let mut report = ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() };
+    let mut policy: Option<Policy> = None;
+    let mut noise = Noise::new(cfg.exploration.noise, n, 2);
+    let mut obs = vec![0.0f32; n * d];
+    let mut actions = vec![0.0f32; n * 2];
+    let mut step_idx: Vec<u32> = vec![0; n];
+    let mut episode_ids: Vec<u64> = vec![0; n];
+    let mut out = VecStep::default();
+    let mut builder = TransitionBatchBuilder::with_capacity(d, 2, cfg.batch_rows + n);
+    let mut sequence = 0u64;
+    let mut last_log = Instant::now();
+    let (mut ep_window, mut ret_window) = (0u64, 0.0f64);
+
+    while !stop.load(Ordering::Relaxed) && max_vehicle_steps.is_none_or(|m| report.vehicle_steps < m) {
+        // Swap policies between steps.
+        if weights_rx.has_changed().unwrap_or(false) {
+            let snap = weights_rx.borrow_and_update().clone();
+            if let Some(s) = snap {
+                match Policy::from_snapshot(&s) {
+                    Ok(p) if p.obs_dim() == d && p.act_dim() == 2 => {
+                        if policy.is_none() {
+                            tracing::info!(version = p.version(), "first policy weights arrived");
+                        }
+                        report.policy_version = p.version();
+                        report.policies_loaded += 1;
+                        policy = Some(p);
+                    }
+                    Ok(p) => {
+                        report.bad_snapshots += 1;
+                        tracing::error!(obs_dim = p.obs_dim(), act_dim = p.act_dim(), expected_obs = d, "published policy has other dimensions than this map's observations; ignored");
+                    }
+                    Err(e) => {
+                        report.bad_snapshots += 1;
+                        tracing::error!(error = %e, version = s.version, "unusable policy weights; keeping the previous policy");
+                    }
+                }
+            }
+        }
+        obs.copy_from_slice(envs.obs());
+        let version = match policy.as_mut() {
+            Some(p) if report.vehicle_steps >= cfg.exploration.warmup_steps => {
+                p.act(&obs, ActMode::Sample, &mut rng, &mut actions)?;
+                noise.apply(&mut rng, &mut actions);
+                p.version()
+            }
+            _ => {
+                for a in actions.iter_mut() {
+                    *a = rng.random_range(-1.0f32..=1.0);
+                }
+                0
+            }
+        };
+        for (i, e) in envs.envs().iter().enumerate() {
+            // Read before stepping: a vehicle whose episode ends is reset by the step.
+            (episode_ids[i], step_idx[i]) = (e.episode_id(), e.steps());
+        }
+        envs.step(&actions, &mut out)?;
+        for i in 0..n {
+            builder.push(Transition {
+                obs: &obs[i * d..(i + 1) * d],
+                action: &actions[2 * i..2 * i + 2],
+                reward: out.reward[i],
+                next_obs: &out.next_obs[i * d..(i + 1) * d],
+                terminal: out.terminal[i],
+                truncated: out.truncated[i],
+                episode_id: ((i as u64) << 40) | episode_ids[i],
+                step: step_idx[i],
+                policy_version: version,
+            })?;
+        }
+        report.vehicle_steps += n as u64;
+        for (i, s) in out.finished.drain(..) {
+            noise.reset(i);
+            report.episodes += 1;
+            ep_window += 1;
+            ret_window += s.return_;
+            let rec = EpisodeStats {
+                protocol_version: ProtocolVersion::V1 as i32,
+                actor_id: actor_id.to_owned(),
+                episode_id: ((i as u64) << 40) | s.episode_id.max(1),
+                policy_version: version,
+                episode_return: s.return_,
+                steps: s.steps,
+                terminal: s.terminal,
+                truncated: s.truncated && !s.terminal,
+                eqs: s.eqs as f64,
+                ees: s.ees,
+                distance_m: s.distance_m,
+                shaded_time_s: s.shaded_time_s,
+                map: map_name.clone(),
+                evaluation: false,
+                finished_unix_ms: unix_ms(),
+            };
+            if let Some(tx) = &stats_tx {
+                // Best effort: a full queue drops the record rather than stall acting.
+                let _ = tx.try_send(rec);
+            }
+        }
+        if builder.len() >= cfg.batch_rows {
+            sequence += 1;
+            let full = std::mem::replace(&mut builder, TransitionBatchBuilder::with_capacity(d, 2, cfg.batch_rows + n));
+            if sink.send(full.finish(actor_id, sequence), &stop).is_err() {
+                break;
+            }
+        }
+        if last_log.elapsed() >= Duration::from_secs(10) {
+            let s = sink.stats();
+            tracing::info!(
+                vehicle_steps = report.vehicle_steps,
+                episodes = report.episodes,
+                mean_return = if ep_window > 0 { ret_window / ep_window as f64 } else { f64::NAN },
+                policy_version = report.policy_version,
+                batches_acked = s.acked,
+                reconnects = s.reconnects,
+                "acting"
+            );
+            (ep_window, ret_window) = (0, 0.0);
+            last_log = Instant::now();
+        }
+    }
+
+    // Shutdown: what is built goes out, and we wait for its acknowledgement.
+    if !builder.is_empty() {
+        sequence += 1;
+        // `stop` is set: one attempt, then `flush` below keeps trying until its deadline.
+        let _ = sink.send(builder.finish(actor_id, sequence), &stop);
+    }
+    report.unacked_at_exit = !sink.flush(Instant::now() + Duration::from_secs(10));
+    report.sink = sink.stats().clone();
+    drop(stats_tx);
+    let _ = stop_tx.send(true);
+    // Give the stats reporter a moment to hand over the last records.
+    rt.shutdown_timeout(Duration::from_secs(2));
+    Ok(report)
+}

@@ -1,0 +1,179 @@
+//! `mapless learner`: the learner process of a cluster — samples from the replay service over
+//! gRPC, updates, publishes versioned weights on its own gRPC service, checkpoints, writes
+//! TensorBoard scalars, and prints one JSON status line per second on stdout (what the
+//! supervisor of `mapless train` reads).
+//!
+//! ```text
+//!   replay ══Sample (prefetch)══► GrpcSource ─► Driver (update, publish every K, checkpoint every N)
+//!                                                  └─► WeightsService (127.0.0.1 by default) ══► actors
+//! ```
+//! SIGINT/SIGTERM: stop after the current update, publish, checkpoint, exit 0.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use mapless_learner::algo::Agent;
+use mapless_learner::config::LearnerConfig;
+use mapless_learner::driver::{Driver, DriverConfig};
+use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig};
+use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve, write_safetensors_file};
+use mapless_learner::{TorchThreads, checkpoint};
+use serde::{Deserialize, Serialize};
+
+/// Everything the learner process needs (`mapless train` writes it as `learner.yaml`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LearnerServiceConfig {
+    /// Algorithm and hyperparameters.
+    pub learner: LearnerConfig,
+    /// Publishing, checkpoint and metrics cadence.
+    #[serde(default)]
+    pub driver: DriverConfig,
+    /// Observation and action lengths (the replay table's).
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    /// The replay service, e.g. `http://127.0.0.1:50051`.
+    pub replay: String,
+    /// Where the weights service listens (`127.0.0.1:0`: any free port, printed on stdout).
+    pub weights_listen: SocketAddr,
+    /// Checkpoints go here; with `resume`, the newest one is loaded at start.
+    pub checkpoint_dir: PathBuf,
+    /// TensorBoard event files.
+    pub tensorboard_dir: Option<PathBuf>,
+    /// Newest published policy, for evaluation and deployment (`.safetensors`, written at
+    /// every checkpoint and at exit).
+    pub policy_file: Option<PathBuf>,
+    /// Continue from the newest checkpoint in `checkpoint_dir` when there is one.
+    #[serde(default)]
+    pub resume: bool,
+    /// libtorch threads (intra-op); inter-op is 1.
+    #[serde(default = "one")]
+    pub threads: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+/// Status line printed every second.
+#[derive(Serialize)]
+struct Status {
+    event: &'static str,
+    updates: u64,
+    updates_per_s: f64,
+    weights_version: u64,
+    batches: u64,
+    reconnects: u64,
+}
+
+fn write_policy(driver: &Driver, path: &Option<PathBuf>) {
+    if let Some(p) = path {
+        match driver.snapshot() {
+            Ok(mut s) => {
+                // The file holds the newest *published* version.
+                s.version = driver.weights_version().max(1);
+                if let Err(e) = write_safetensors_file(p, &s) {
+                    tracing::warn!(error = %e, "cannot write the policy file");
+                }
+            }
+            Err(e) => tracing::warn!(error = %e, "cannot snapshot the policy"),
+        }
+    }
+}
+
+fn has_checkpoint(dir: &Path) -> bool {
+    checkpoint::resolve(dir).is_ok()
+}
+
+/// Runs the learner process until SIGINT/SIGTERM.
+pub fn run(config_path: &Path) -> Result<()> {
+    let text = std::fs::read_to_string(config_path).with_context(|| format!("reading {}", config_path.display()))?;
+    let cfg: LearnerServiceConfig = serde_yaml::from_str(&text).with_context(|| format!("parsing {}", config_path.display()))?;
+    cfg.learner.validate()?;
+    TorchThreads { intra_op: cfg.threads.max(1), inter_op: 1 }.apply()?;
+
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).thread_name("learner-io").enable_all().build()?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    {
+        let stop = Arc::clone(&stop);
+        rt.spawn(async move {
+            crate::signals::termination().await;
+            tracing::info!("signal received; stopping after this update");
+            stop.store(true, Ordering::Relaxed);
+        });
+    }
+
+    let mut source_cfg = GrpcSourceConfig::new(GrpcEndpoint::new(cfg.replay.clone()), cfg.learner.batch_size as u32);
+    source_cfg.expected_dims = Some((cfg.obs_dim, cfg.act_dim));
+    let source = Box::new(GrpcSource::start(source_cfg)?);
+    let publisher = WeightsPublisher::new();
+    let mut driver = if cfg.resume && has_checkpoint(&cfg.checkpoint_dir) {
+        let d = Driver::resume(&cfg.checkpoint_dir, Some(&cfg.learner.device), source, publisher.clone(), cfg.driver.clone())?;
+        tracing::info!(updates = d.agent().updates(), weights_version = d.weights_version(), "resumed from checkpoint");
+        d
+    } else {
+        if cfg.resume {
+            tracing::warn!(dir = %cfg.checkpoint_dir.display(), "no checkpoint to resume from; starting fresh");
+        }
+        let agent = Agent::new(&cfg.learner, cfg.obs_dim, cfg.act_dim)?;
+        Driver::new(agent, source, publisher.clone(), cfg.driver.clone(), 0)?
+    };
+    driver = driver.with_checkpoints(&cfg.checkpoint_dir);
+    if let Some(tb) = &cfg.tensorboard_dir {
+        driver = driver.with_tensorboard(tb)?;
+    }
+
+    // Weights service; its address goes to stdout for the supervisor.
+    let listener = rt.block_on(tokio::net::TcpListener::bind(cfg.weights_listen)).with_context(|| format!("binding the weights service on {}", cfg.weights_listen))?;
+    let addr = listener.local_addr()?;
+    let mut shutdown = stop_rx.clone();
+    let server = rt.spawn(serve(listener, publisher, ServeOptions::default(), async move {
+        let _ = shutdown.wait_for(|s| *s).await;
+    }));
+    println!("weights on {addr}");
+    // Publish now: actors act with the initial (or, resumed, the newest) policy while the
+    // replay fills.
+    driver.publish()?;
+    write_policy(&driver, &cfg.policy_file);
+
+    let mut last = (Instant::now(), driver.agent().updates());
+    let mut last_policy_write = Instant::now();
+    while !stop.load(Ordering::Relaxed) {
+        driver.try_step(Duration::from_millis(200))?;
+        if last.0.elapsed() >= Duration::from_secs(1) {
+            let n = driver.agent().updates();
+            let s = driver.source().stats();
+            let status = Status {
+                event: "status",
+                updates: n,
+                updates_per_s: (n - last.1) as f64 / last.0.elapsed().as_secs_f64(),
+                weights_version: driver.weights_version(),
+                batches: s.batches,
+                reconnects: s.reconnects,
+            };
+            println!("{}", serde_json::to_string(&status)?);
+            last = (Instant::now(), n);
+        }
+        if last_policy_write.elapsed() >= Duration::from_secs(30) {
+            write_policy(&driver, &cfg.policy_file);
+            last_policy_write = Instant::now();
+        }
+    }
+    // Final: publish, checkpoint, policy file.
+    if driver.agent().updates() > 0 {
+        driver.publish()?;
+    }
+    let ck = driver.checkpoint()?;
+    write_policy(&driver, &cfg.policy_file);
+    tracing::info!(checkpoint = %ck.display(), updates = driver.agent().updates(), weights_version = driver.weights_version(), "final checkpoint written");
+    println!("{}", serde_json::json!({"event": "stopped", "updates": driver.agent().updates(), "weights_version": driver.weights_version(), "checkpoint": ck}));
+    let _ = stop_tx.send(true);
+    let _ = rt.block_on(server);
+    rt.shutdown_timeout(Duration::from_secs(2));
+    Ok(())
+}

@@ -1,0 +1,1076 @@
+//! `mapless train`: a whole actor–learner cluster on this machine, supervised.
+//!
+//! ```text
+//!   mapless train ─┬─ mapless-replay  (run/replay.yaml; persists to run/replay/)
+//!   (supervisor,   ├─ mapless learner (run/learner.yaml; checkpoints, TensorBoard, policy file)
+//!    stats         └─ mapless-actor × N (run/actor.yaml) ──iceoryx2──► replay
+//!    collector)         ▲ weights (gRPC) ── learner        └─ episodes (gRPC) ──► supervisor
+//! ```
+//!
+//! The supervisor restarts a child that dies (actors at once; the learner from its newest
+//! checkpoint; the replay from its log), prints a progress line, writes `episodes.csv` and
+//! `curves.png` as the run goes, stops on the preset's criteria (order-W moving averages of
+//! return and steps, or K episodes, or a time limit) or Ctrl-C, then stops the children in
+//! order (actors, learner with a final checkpoint, replay), evaluates the final policy and
+//! writes `summary.json`.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::{BufRead, BufReader, IsTerminal, Write};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc as std_mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use mapless_actor::run::{ActorConfig, ExplorationSettings, ReplayTarget};
+use mapless_actor::NoiseConfig;
+use mapless_learner::config::{AlgorithmKind, LearnerConfig};
+use mapless_learner::driver::DriverConfig;
+use mapless_proto::v1::replay_service_client::ReplayServiceClient;
+use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ServerInfoRequest};
+use mapless_replay::server::ServerConfig;
+use mapless_replay::shm::ShmConfig;
+use mapless_replay::TableConfig;
+use mapless_sim::{EnvConfig, RewardConfig};
+use mapless_sim::plot::{CurvePoint, CurveStyle, training_curves_png};
+use serde::{Deserialize, Serialize};
+
+use crate::eval;
+use crate::learner_cmd::LearnerServiceConfig;
+
+/// Built-in presets: name → YAML (the files under `presets/`).
+pub const PRESETS: &[(&str, &str)] = &[
+    ("env1-sac", include_str!("../../presets/env1-sac.yaml")),
+    ("env1-td3", include_str!("../../presets/env1-td3.yaml")),
+    ("env1-ddpg", include_str!("../../presets/env1-ddpg.yaml")),
+    ("env2-sac", include_str!("../../presets/env2-sac.yaml")),
+    ("env2-td3", include_str!("../../presets/env2-td3.yaml")),
+    ("env2-ddpg", include_str!("../../presets/env2-ddpg.yaml")),
+    ("outdoor20-sac", include_str!("../../presets/outdoor20-sac.yaml")),
+];
+
+/// When a run stops by itself (whichever comes first). Moving averages are over the last
+/// `window` training episodes and are only compared once `window` episodes exist.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct StopCriteria {
+    /// Stop after this many training episodes.
+    pub episodes: Option<u64>,
+    /// Order of the moving averages.
+    pub window: usize,
+    /// Stop when the moving average of episode return reaches this ...
+    pub average_return: Option<f64>,
+    /// ... and (when both are set) the moving average of episode steps reaches this.
+    pub average_steps: Option<f64>,
+    /// Stop after this many minutes of wall time.
+    pub minutes: Option<f64>,
+}
+
+impl Default for StopCriteria {
+    fn default() -> Self {
+        StopCriteria { episodes: None, window: 50, average_return: None, average_steps: None, minutes: None }
+    }
+}
+
+/// Actor processes.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ActorsSettings {
+    /// Actor processes.
+    pub count: usize,
+    /// Vehicles per process.
+    pub vehicles: usize,
+    /// Transitions per batch sent to the replay.
+    pub batch_rows: usize,
+    /// Uniform random vehicle-steps at the start of each actor process.
+    pub warmup_steps: u64,
+    /// Exploration noise; default by algorithm (DDPG: OU θ 0.15 σ 0.3, TD3: Gaussian σ 0.32,
+    /// SAC: none, it samples).
+    pub noise: Option<NoiseConfig>,
+}
+
+impl Default for ActorsSettings {
+    fn default() -> Self {
+        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, noise: None }
+    }
+}
+
+/// Evaluation of the final policy.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvalSettings {
+    /// Episodes (deterministic policy); 0 skips it.
+    pub episodes: u32,
+    /// Map (default: the training map).
+    pub map: Option<String>,
+}
+
+impl Default for EvalSettings {
+    fn default() -> Self {
+        EvalSettings { episodes: 10, map: None }
+    }
+}
+
+/// Threads: libtorch's for the learner (actors are single-threaded each).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ThreadSettings {
+    pub learner: usize,
+}
+
+impl Default for ThreadSettings {
+    fn default() -> Self {
+        ThreadSettings { learner: 1 }
+    }
+}
+
+/// A training run, as a preset file writes it and as `run/config.yaml` keeps it (resolved).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    /// Built-in map name or path to a map YAML.
+    pub map: String,
+    /// Reward preset (`exploration`: eq. 1, `search_and_rescue`: eq. 2); overrides `env.reward`.
+    #[serde(default)]
+    pub reward: Option<String>,
+    /// Step limit per episode; overrides `env.episode.max_steps`.
+    #[serde(default)]
+    pub max_steps: Option<u32>,
+    /// Simulator settings (vehicle, sensor, reward, episode, EQS grid).
+    #[serde(default)]
+    pub env: EnvConfig,
+    /// Algorithm and hyperparameters (paper Table I defaults).
+    #[serde(default)]
+    pub learner: LearnerConfig,
+    /// Publishing / checkpoint / metrics cadence of the learner.
+    #[serde(default = "default_driver")]
+    pub driver: DriverConfig,
+    /// The replay table (capacity, sampler, rate limiter); dims are set from `env`.
+    #[serde(default = "default_table")]
+    pub replay: TableConfig,
+    /// Persist the replay (write-ahead log + snapshots in `run/replay/`), so a restarted
+    /// replay or a resumed run keeps its transitions.
+    #[serde(default = "yes")]
+    pub replay_persistence: bool,
+    #[serde(default)]
+    pub actors: ActorsSettings,
+    #[serde(default)]
+    pub stop: StopCriteria,
+    #[serde(default)]
+    pub eval: EvalSettings,
+    #[serde(default)]
+    pub threads: ThreadSettings,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn default_driver() -> DriverConfig {
+    DriverConfig { publish_every: 50, checkpoint_every: 20_000, checkpoint_keep: 2, metrics_every: 200, send_priorities: false }
+}
+
+fn default_table() -> TableConfig {
+    let mut t = TableConfig::default();
+    // One 128-row minibatch per 4 environment steps at most: the learner keeps pace with the
+    // actors instead of the actors racing ahead on a stale policy.
+    t.rate_limiter.samples_per_insert = Some(32.0);
+    t.rate_limiter.min_size_to_sample = 2_500;
+    t.rate_limiter.error_buffer = 20_000.0;
+    // The limiter's slack must cover the largest insert batch × the ratio (see
+    // RateLimiterConfig); actors send `actors.batch_rows` rows at a time.
+    t.max_batch_rows = 512;
+    t.max_sample_rows = 4096;
+    t
+}
+
+impl TrainConfig {
+    /// Applies `reward` and `max_steps` to `env`, sets the table's dims, checks everything.
+    pub fn resolve(mut self) -> Result<TrainConfig> {
+        if let Some(r) = &self.reward {
+            self.env.reward = RewardConfig::preset(r)?;
+        }
+        if let Some(m) = self.max_steps {
+            self.env.episode.max_steps = m;
+        }
+        self.env.validate()?;
+        self.replay.obs_dim = self.env.obs_dim();
+        self.replay.act_dim = 2;
+        self.replay.validate()?;
+        self.learner.validate()?;
+        if self.actors.count == 0 || self.actors.vehicles == 0 || self.actors.batch_rows == 0 {
+            bail!("actors.count, actors.vehicles and actors.batch_rows must be >= 1");
+        }
+        if self.actors.batch_rows + self.actors.vehicles > self.replay.max_batch_rows {
+            bail!("actors.batch_rows + actors.vehicles ({}) must not exceed replay.max_batch_rows ({})", self.actors.batch_rows + self.actors.vehicles, self.replay.max_batch_rows);
+        }
+        if self.stop.window == 0 {
+            bail!("stop.window must be >= 1");
+        }
+        mapless_sim::Map::resolve(&self.map).with_context(|| format!("map `{}`", self.map))?;
+        Ok(self)
+    }
+
+    fn noise(&self) -> NoiseConfig {
+        self.actors.noise.unwrap_or(match self.learner.algorithm {
+            AlgorithmKind::Ddpg => NoiseConfig::DDPG_DEFAULT,
+            AlgorithmKind::Td3 => NoiseConfig::TD3_DEFAULT,
+            AlgorithmKind::Sac => NoiseConfig::None,
+        })
+    }
+}
+
+/// Sets `path` (dotted, e.g. `learner.actor_lr`) in a YAML document to `value` (parsed as YAML).
+pub fn set_path(doc: &mut serde_yaml::Value, path: &str, value: &str) -> Result<()> {
+    let v: serde_yaml::Value = serde_yaml::from_str(value).with_context(|| format!("--set {path}={value}: not a YAML value"))?;
+    let mut cur = doc;
+    let parts: Vec<&str> = path.split('.').collect();
+    for (i, p) in parts.iter().enumerate() {
+        if p.is_empty() {
+            bail!("--set {path}: empty key");
+        }
+        if !cur.is_mapping() {
+            if cur.is_null() {
+                *cur = serde_yaml::Value::Mapping(Default::default());
+            } else {
+                bail!("--set {path}: `{}` is not a section", parts[..i].join("."));
+            }
+        }
+        let map = cur.as_mapping_mut().expect("mapping");
+        let key = serde_yaml::Value::String((*p).to_owned());
+        if i + 1 == parts.len() {
+            map.insert(key, v);
+            return Ok(());
+        }
+        cur = map.entry(key).or_insert(serde_yaml::Value::Null);
+    }
+    Ok(())
+}
+
+/// A preset's YAML: a built-in name or a file path.
+pub fn preset_text(preset: &str) -> Result<String> {
+    if let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == preset) {
+        return Ok((*text).to_owned());
+    }
+    let p = Path::new(preset);
+    if p.exists() {
+        return fs::read_to_string(p).with_context(|| format!("reading {}", p.display()));
+    }
+    bail!("unknown preset `{preset}`: built-in ones are {}; or give a path to a YAML file", PRESETS.iter().map(|p| p.0).collect::<Vec<_>>().join(", "))
+}
+
+#[derive(clap::Args, Clone, Debug)]
+pub struct TrainArgs {
+    /// Built-in preset (env1-sac, env1-td3, env1-ddpg, env2-*, outdoor20-sac) or a YAML file.
+    #[arg(long, default_value = "env1-sac", conflicts_with = "resume")]
+    pub preset: String,
+    /// Actor processes (overrides the preset).
+    #[arg(long)]
+    pub actors: Option<usize>,
+    /// Vehicles per actor process (overrides the preset).
+    #[arg(long)]
+    pub vehicles: Option<usize>,
+    /// Stop after K training episodes (overrides the preset).
+    #[arg(long)]
+    pub episodes: Option<u64>,
+    /// Stop after this many minutes (overrides the preset).
+    #[arg(long)]
+    pub minutes: Option<f64>,
+    /// Run folder [default: runs/<preset name>].
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// Continue the run in this folder (its config, checkpoint, replay and curves).
+    #[arg(long, value_name = "RUN")]
+    pub resume: Option<PathBuf>,
+    /// Override any config field: --set learner.actor_lr=1e-4 --set actors.vehicles=8.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Overwrite an existing run folder that is not being resumed.
+    #[arg(long)]
+    pub force: bool,
+    /// Print the resolved config as YAML and exit.
+    #[arg(long)]
+    pub print_config: bool,
+}
+
+fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
+    let (mut doc, run, resuming): (serde_yaml::Value, PathBuf, bool) = match &args.resume {
+        Some(run) => {
+            let text = fs::read_to_string(run.join("config.yaml")).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
+            (serde_yaml::from_str(&text)?, run.clone(), true)
+        }
+        None => {
+            let doc: serde_yaml::Value = serde_yaml::from_str(&preset_text(&args.preset)?).context("preset YAML")?;
+            let name = doc.get("name").and_then(|v| v.as_str()).unwrap_or("run").to_owned();
+            (doc, args.run.clone().unwrap_or_else(|| PathBuf::from("runs").join(name)), false)
+        }
+    };
+    if let Some(n) = args.actors {
+        set_path(&mut doc, "actors.count", &n.to_string())?;
+    }
+    if let Some(n) = args.vehicles {
+        set_path(&mut doc, "actors.vehicles", &n.to_string())?;
+    }
+    if let Some(k) = args.episodes {
+        set_path(&mut doc, "stop.episodes", &k.to_string())?;
+    }
+    if let Some(m) = args.minutes {
+        set_path(&mut doc, "stop.minutes", &m.to_string())?;
+    }
+    for kv in &args.set {
+        let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
+        set_path(&mut doc, k.trim(), v.trim())?;
+    }
+    let cfg: TrainConfig = serde_yaml::from_value(doc).context("config")?;
+    Ok((cfg.resolve()?, run, resuming))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Episodes: CSV and moving averages
+// ---------------------------------------------------------------------------------------------
+
+const CSV_HEADER: &str = "episode,wall_s,actor_id,policy_version,return,steps,terminal,eqs,ees,distance_m,shaded_time_s";
+
+/// One training episode as the run records it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeRow {
+    pub episode: u64,
+    pub wall_s: f64,
+    pub actor_id: String,
+    pub policy_version: u64,
+    pub episode_return: f64,
+    pub steps: u32,
+    pub terminal: bool,
+    pub eqs: f64,
+    pub ees: f64,
+    pub distance_m: f64,
+    pub shaded_time_s: f64,
+}
+
+impl EpisodeRow {
+    fn csv(&self) -> String {
+        format!(
+            "{},{:.3},{},{},{:.4},{},{},{},{:.4},{:.3},{:.2}",
+            self.episode, self.wall_s, self.actor_id, self.policy_version, self.episode_return, self.steps, u8::from(self.terminal), self.eqs, self.ees, self.distance_m, self.shaded_time_s
+        )
+    }
+
+    fn parse(line: &str) -> Option<EpisodeRow> {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 11 {
+            return None;
+        }
+        Some(EpisodeRow {
+            episode: f[0].parse().ok()?,
+            wall_s: f[1].parse().ok()?,
+            actor_id: f[2].to_owned(),
+            policy_version: f[3].parse().ok()?,
+            episode_return: f[4].parse().ok()?,
+            steps: f[5].parse().ok()?,
+            terminal: f[6] == "1",
+            eqs: f[7].parse().ok()?,
+            ees: f[8].parse().ok()?,
+            distance_m: f[9].parse().ok()?,
+            shaded_time_s: f[10].parse().ok()?,
+        })
+    }
+}
+
+/// Reads a run's `episodes.csv` (for a resume); lines that do not parse (a torn last line
+/// after a crash) are skipped and counted.
+pub fn read_episodes(path: &Path) -> (Vec<EpisodeRow>, usize) {
+    let Ok(text) = fs::read_to_string(path) else { return (Vec::new(), 0) };
+    let mut rows = Vec::new();
+    let mut bad = 0;
+    for line in text.lines().skip(1).filter(|l| !l.trim().is_empty()) {
+        match EpisodeRow::parse(line) {
+            Some(r) => rows.push(r),
+            None => bad += 1,
+        }
+    }
+    (rows, bad)
+}
+
+/// Trailing mean of the last `window` values (fewer at the start).
+fn trailing_mean(values: impl DoubleEndedIterator<Item = f64>, window: usize) -> f64 {
+    let (mut s, mut n) = (0.0, 0usize);
+    for v in values.rev().take(window) {
+        s += v;
+        n += 1;
+    }
+    if n == 0 { f64::NAN } else { s / n as f64 }
+}
+
+/// Have the stop criteria on moving averages been met?
+pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria) -> bool {
+    if stop.average_return.is_none() && stop.average_steps.is_none() {
+        return false;
+    }
+    if rows.len() < stop.window {
+        return false;
+    }
+    let r = trailing_mean(rows.iter().map(|e| e.episode_return), stop.window);
+    let s = trailing_mean(rows.iter().map(|e| f64::from(e.steps)), stop.window);
+    stop.average_return.is_none_or(|g| r >= g) && stop.average_steps.is_none_or(|g| s >= g)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Children
+// ---------------------------------------------------------------------------------------------
+
+/// A supervised child process.
+struct Proc {
+    role: String,
+    cmd: Vec<String>,
+    child: Option<Child>,
+    restarts: u32,
+    log: PathBuf,
+}
+
+impl Proc {
+    fn spawn(role: &str, cmd: Vec<String>, log: PathBuf, on_line: Option<std_mpsc::Sender<(String, String)>>) -> Result<Proc> {
+        let mut p = Proc { role: role.to_owned(), cmd, child: None, restarts: 0, log };
+        p.start(on_line)?;
+        Ok(p)
+    }
+
+    fn start(&mut self, on_line: Option<std_mpsc::Sender<(String, String)>>) -> Result<()> {
+        let log = fs::OpenOptions::new().create(true).append(true).open(&self.log).with_context(|| format!("opening {}", self.log.display()))?;
+        let mut c = Command::new(&self.cmd[0]);
+        c.args(&self.cmd[1..]).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(log);
+        let mut child = c.spawn().with_context(|| format!("starting {} ({})", self.role, self.cmd[0]))?;
+        let out = child.stdout.take().expect("piped stdout");
+        let role = self.role.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(out).lines().map_while(std::result::Result::ok) {
+                if let Some(tx) = &on_line {
+                    let _ = tx.send((role.clone(), line));
+                }
+            }
+        });
+        self.child = Some(child);
+        Ok(())
+    }
+
+    /// Exit status if it has exited.
+    fn exited(&mut self) -> Option<std::process::ExitStatus> {
+        self.child.as_mut().and_then(|c| c.try_wait().ok().flatten())
+    }
+
+    fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(Child::id)
+    }
+
+    /// SIGTERM, then wait up to `grace`, then SIGKILL.
+    fn stop(&mut self, grace: Duration) {
+        let Some(c) = self.child.as_mut() else { return };
+        if c.try_wait().ok().flatten().is_none() {
+            let _ = Command::new("kill").arg("-TERM").arg(c.id().to_string()).status();
+            let end = Instant::now() + grace;
+            while Instant::now() < end {
+                if c.try_wait().ok().flatten().is_some() {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            if c.try_wait().ok().flatten().is_none() {
+                tracing::warn!(role = %self.role, "did not stop within {grace:?}; killing");
+                let _ = c.kill();
+                let _ = c.wait();
+            }
+        }
+        self.child = None;
+    }
+}
+
+/// Waits for a line from `role` that starts with `prefix`.
+fn wait_line(rx: &std_mpsc::Receiver<(String, String)>, role: &str, prefix: &str, timeout: Duration, proc_: &mut Proc) -> Result<String> {
+    let end = Instant::now() + timeout;
+    loop {
+        if let Some(st) = proc_.exited() {
+            bail!("{role} exited ({st}) before it was ready; see {}", proc_.log.display());
+        }
+        match rx.recv_timeout(Duration::from_millis(100)) {
+            Ok((r, l)) if r == role && l.starts_with(prefix) => return Ok(l),
+            Ok(_) => {}
+            Err(std_mpsc::RecvTimeoutError::Timeout) => {}
+            Err(e) => bail!("{role}: {e}"),
+        }
+        if Instant::now() > end {
+            bail!("{role} not ready after {timeout:?}; see {}", proc_.log.display());
+        }
+    }
+}
+
+/// A free loopback port (bound and released; the child binds it a moment later).
+fn free_port() -> Result<SocketAddr> {
+    let l = std::net::TcpListener::bind("127.0.0.1:0")?;
+    Ok(l.local_addr()?)
+}
+
+/// `mapless-replay` and `mapless-actor` live next to this executable.
+fn sibling(name: &str) -> Result<PathBuf> {
+    let exe = std::env::current_exe()?;
+    let p = exe.with_file_name(name);
+    if p.exists() {
+        return Ok(p);
+    }
+    bail!("{} not found next to {} — build all binaries: `cargo build --release --bins` (run.sh does)", name, exe.display())
+}
+
+// ---------------------------------------------------------------------------------------------
+// The run
+// ---------------------------------------------------------------------------------------------
+
+#[derive(Default, Clone, Debug)]
+struct LearnerStatus {
+    updates: u64,
+    updates_per_s: f64,
+    weights_version: u64,
+}
+
+/// What `summary.json` holds.
+#[derive(Serialize, Debug)]
+struct Summary {
+    run: String,
+    preset: String,
+    stopped_because: String,
+    wall_s: f64,
+    episodes: u64,
+    env_steps: u64,
+    updates: u64,
+    weights_version: u64,
+    average_return: f64,
+    average_steps: f64,
+    window: usize,
+    criteria_met_at: Option<Milestone>,
+    actor_restarts: u32,
+    /// Throughput after start-up (from 20 s, or a third of a time-limited run, to the stop).
+    steady: Option<Rates>,
+    evaluation: Option<eval::EvalSummary>,
+}
+
+#[derive(Serialize, Debug)]
+struct Rates {
+    from_s: f64,
+    seconds: f64,
+    env_steps_per_s: f64,
+    updates_per_s: f64,
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug)]
+struct Milestone {
+    wall_s: f64,
+    episode: u64,
+    env_steps: u64,
+    updates: u64,
+}
+
+fn fmt_int(n: u64) -> String {
+    let s = n.to_string();
+    let mut out = String::new();
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i) % 3 == 0 {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// Runs `mapless train`.
+pub fn train(args: &TrainArgs) -> Result<()> {
+    let (cfg, run, resuming) = load_config(args)?;
+    if args.print_config {
+        print!("{}", serde_yaml::to_string(&cfg)?);
+        return Ok(());
+    }
+    if !resuming && run.join("config.yaml").exists() {
+        if !args.force {
+            bail!("{} already holds a run; continue it with `--resume {}`, pick another `--run`, or pass --force to start over", run.display(), run.display());
+        }
+        fs::remove_dir_all(&run).with_context(|| format!("removing {}", run.display()))?;
+    }
+    let logs = run.join("logs");
+    fs::create_dir_all(&logs)?;
+    fs::write(run.join("config.yaml"), serde_yaml::to_string(&cfg)?)?;
+    let run_name = run.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into());
+    let run_abs = fs::canonicalize(&run)?;
+
+    // Stop flag: Ctrl-C / SIGTERM.
+    let stop = Arc::new(AtomicBool::new(false));
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).thread_name("train-io").enable_all().build()?;
+    {
+        let stop = Arc::clone(&stop);
+        rt.spawn(async move {
+            crate::signals::termination().await;
+            stop.store(true, Ordering::Relaxed);
+        });
+    }
+
+    // Ports, chosen once so that a restarted child comes back on the same address.
+    let replay_addr = free_port()?;
+    let replay_metrics = free_port()?;
+    let weights_addr = free_port()?;
+    // One iceoryx2 domain per run folder: runs on one host stay apart, and a restarted
+    // replay or actor cleans what a killed predecessor of *this* run left.
+    let domain = format!("mpl{:08x}_", crc32fast::hash(run_abs.to_string_lossy().as_bytes()));
+    let shm = ShmConfig { domain: domain.clone(), ..ShmConfig::for_table(&cfg.replay.name) };
+
+    let mut server = ServerConfig { listen: replay_addr, metrics_listen: Some(replay_metrics), table: cfg.replay.clone(), shm: Some(shm.clone()), seed: cfg.seed, ..ServerConfig::default() };
+    if cfg.replay_persistence {
+        server.persistence.dir = Some(run_abs.join("replay"));
+    }
+    fs::write(run.join("replay.yaml"), serde_yaml::to_string(&server)?)?;
+
+    let learner_cfg = LearnerServiceConfig {
+        learner: LearnerConfig { seed: cfg.seed, ..cfg.learner.clone() },
+        driver: cfg.driver.clone(),
+        obs_dim: cfg.env.obs_dim(),
+        act_dim: 2,
+        replay: format!("http://{replay_addr}"),
+        weights_listen: weights_addr,
+        checkpoint_dir: run_abs.join("checkpoints"),
+        tensorboard_dir: Some(run_abs.join("tensorboard")),
+        policy_file: Some(run_abs.join("policy.safetensors")),
+        resume: true,
+        threads: cfg.threads.learner,
+    };
+    fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
+
+    // Stats collector (in this process).
+    let stats_listener = rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
+    let stats_addr = stats_listener.local_addr()?;
+    let (ep_tx, mut ep_rx) = tokio::sync::mpsc::channel::<EpisodeStats>(8192);
+    let (collector_stop_tx, collector_stop_rx) = tokio::sync::watch::channel(false);
+    rt.spawn(async move {
+        if let Err(e) = mapless_actor::stats::serve_collector(stats_listener, ep_tx, collector_stop_rx).await {
+            tracing::error!(error = %e, "stats collector stopped");
+        }
+    });
+
+    let actor_cfg = ActorConfig {
+        map: cfg.map.clone(),
+        env: cfg.env.clone(),
+        vehicles: cfg.actors.vehicles,
+        exploration: ExplorationSettings { warmup_steps: if resuming { 0 } else { cfg.actors.warmup_steps }, noise: cfg.noise() },
+        batch_rows: cfg.actors.batch_rows,
+        max_in_flight: 8,
+        replay: ReplayTarget::Shm { prefix: shm.prefix.clone(), domain: shm.domain.clone() },
+        weights: format!("http://{weights_addr}"),
+        stats: Some(format!("http://{stats_addr}")),
+        security: Default::default(),
+        seed: cfg.seed,
+    };
+    fs::write(run.join("actor.yaml"), serde_yaml::to_string(&actor_cfg)?)?;
+
+    let exe = std::env::current_exe()?.to_string_lossy().into_owned();
+    let replay_bin = sibling("mapless-replay")?.to_string_lossy().into_owned();
+    let actor_bin = sibling("mapless-actor")?.to_string_lossy().into_owned();
+    let p = |x: &Path| x.to_string_lossy().into_owned();
+    let (line_tx, line_rx) = std_mpsc::channel::<(String, String)>();
+
+    eprintln!("mapless train: {} — {} ({} actors × {} vehicles); run folder {}", cfg.name, cfg.description, cfg.actors.count, cfg.actors.vehicles, run.display());
+    eprintln!("  logs: {}/  TensorBoard: tensorboard --logdir {}/tensorboard", logs.display(), run.display());
+    let mut replay = Proc::spawn("replay", vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))], logs.join("replay.log"), Some(line_tx.clone()))?;
+    wait_line(&line_rx, "replay", "listening on", Duration::from_secs(120), &mut replay)?;
+    let learner_cmd = vec![exe, "learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()];
+    let mut learner = Proc::spawn("learner", learner_cmd, logs.join("learner.log"), Some(line_tx.clone()))?;
+    wait_line(&line_rx, "learner", "weights on", Duration::from_secs(120), &mut learner)?;
+    let actor_cmd = |i: usize| vec![actor_bin.clone(), "--config".into(), p(&run_abs.join("actor.yaml")), "--index".into(), i.to_string(), "--run".into(), run_name.clone()];
+    let mut actors: Vec<Proc> = Vec::new();
+    for i in 0..cfg.actors.count {
+        actors.push(Proc::spawn(&format!("actor-{i}"), actor_cmd(i), logs.join(format!("actor-{i}.log")), Some(line_tx.clone())).with_context(|| format!("actor {i}"))?);
+    }
+    fs::write(
+        run.join("endpoints.json"),
+        serde_json::to_string_pretty(&serde_json::json!({
+            "replay": format!("http://{replay_addr}"), "replay_metrics": format!("http://{replay_metrics}/metrics"),
+            "weights": format!("http://{weights_addr}"), "stats": format!("http://{stats_addr}"),
+            "shm_prefix": shm.prefix, "shm_domain": shm.domain,
+        }))?,
+    )?;
+    write_pids(&run, &replay, &learner, &actors)?;
+
+    // Episodes so far (a resumed run continues its curve).
+    let csv_path = run.join("episodes.csv");
+    let (mut rows, bad) = read_episodes(&csv_path);
+    if bad > 0 {
+        tracing::warn!(bad, "skipped unreadable lines of episodes.csv");
+    }
+    let offset_s = rows.last().map_or(0.0, |r| r.wall_s);
+    let mut csv = fs::OpenOptions::new().create(true).append(true).open(&csv_path)?;
+    if rows.is_empty() && bad == 0 {
+        writeln!(csv, "{CSV_HEADER}")?;
+    }
+    let first_episode_this_session = rows.len();
+
+    let learner_status = Arc::new(Mutex::new(LearnerStatus::default()));
+    let mut replay_client: Option<ReplayServiceClient<tonic::transport::Channel>> = None;
+    let (mut replay_size, mut inserts_total) = (0u64, 0u64);
+    let mut env_rate = (Instant::now(), 0u64, 0.0f64);
+    let started = Instant::now();
+    let mut last_progress = Instant::now() - Duration::from_secs(10);
+    let mut last_printed = Instant::now() - Duration::from_secs(10);
+    let mut last_picture = Instant::now();
+    let mut pictured = rows.len();
+    let mut milestone: Option<Milestone> = None;
+    let mut stopped_because = String::from("interrupted (Ctrl-C)");
+    let tty = std::io::stderr().is_terminal();
+    let mut restarts = 0u32;
+    let steady_from = cfg.stop.minutes.map_or(20.0, |m| (m * 20.0).min(20.0));
+    let mut steady_start: Option<(Instant, u64, u64)> = None;
+    let mut lines_seen: BTreeMap<String, u64> = BTreeMap::new();
+
+    loop {
+        // Lines from children (the learner's status, actors' final reports).
+        while let Ok((role, line)) = line_rx.try_recv() {
+            *lines_seen.entry(role.clone()).or_default() += 1;
+            if role == "learner"
+                && let Ok(v) = serde_json::from_str::<serde_json::Value>(&line)
+                && v.get("event").and_then(|e| e.as_str()) == Some("status")
+            {
+                let mut s = learner_status.lock().unwrap_or_else(|e| e.into_inner());
+                s.updates = v["updates"].as_u64().unwrap_or(s.updates);
+                s.updates_per_s = v["updates_per_s"].as_f64().unwrap_or(0.0);
+                s.weights_version = v["weights_version"].as_u64().unwrap_or(s.weights_version);
+            }
+        }
+        // Episodes.
+        while let Ok(e) = ep_rx.try_recv() {
+            if e.evaluation {
+                continue;
+            }
+            let row = EpisodeRow {
+                episode: rows.len() as u64 + 1,
+                wall_s: offset_s + started.elapsed().as_secs_f64(),
+                actor_id: e.actor_id,
+                policy_version: e.policy_version,
+                episode_return: e.episode_return,
+                steps: e.steps,
+                terminal: e.terminal,
+                eqs: e.eqs,
+                ees: e.ees,
+                distance_m: e.distance_m,
+                shaded_time_s: e.shaded_time_s,
+            };
+            writeln!(csv, "{}", row.csv())?;
+            rows.push(row);
+        }
+        let ls = learner_status.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        // Replay info, once a second.
+        if last_progress.elapsed() >= Duration::from_secs(1) {
+            let info = rt.block_on(async {
+                if replay_client.is_none() {
+                    replay_client = ReplayServiceClient::connect(format!("http://{replay_addr}")).await.ok();
+                }
+                let c = replay_client.as_mut()?;
+                let r = tokio::time::timeout(Duration::from_secs(1), c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32, ..Default::default() })).await;
+                match r {
+                    Ok(Ok(r)) => Some(r.into_inner()),
+                    _ => None,
+                }
+            });
+            match info {
+                Some(i) => {
+                    replay_size = i.size;
+                    inserts_total = i.inserts_total;
+                    if steady_start.is_none() && started.elapsed().as_secs_f64() >= steady_from {
+                        steady_start = Some((Instant::now(), i.inserts_total, ls.updates));
+                    }
+                }
+                None => replay_client = None,
+            }
+            let dt = env_rate.0.elapsed().as_secs_f64();
+            if dt >= 5.0 {
+                env_rate = (Instant::now(), inserts_total, (inserts_total.saturating_sub(env_rate.1)) as f64 / dt);
+            } else if env_rate.1 == 0 {
+                env_rate.1 = inserts_total;
+            }
+            let w = cfg.stop.window;
+            let avg_r = trailing_mean(rows.iter().map(|e| e.episode_return), w);
+            let avg_s = trailing_mean(rows.iter().map(|e| f64::from(e.steps)), w);
+            let el = started.elapsed().as_secs();
+            let alive = actors.iter_mut().filter_map(|a| a.exited().is_none().then_some(())).count();
+            let line = format!(
+                "[{:02}:{:02}:{:02}] ep {} | avg{} return {:.1} steps {:.0} | updates {} ({:.0}/s) | env {:.0} steps/s | replay {} | policy v{} | actors {}/{}{}",
+                el / 3600, el / 60 % 60, el % 60,
+                fmt_int(rows.len() as u64), w, avg_r, avg_s, fmt_int(ls.updates), ls.updates_per_s, env_rate.2, fmt_int(replay_size), ls.weights_version, alive, actors.len(),
+                if restarts > 0 { format!(" ({restarts} restarts)") } else { String::new() }
+            );
+            if tty {
+                eprint!("\r{line}\x1b[K");
+            } else if last_printed.elapsed() >= Duration::from_secs(10) {
+                // Logs and pipes get a line every 10 s instead of a line rewritten in place.
+                eprintln!("{line}");
+                last_printed = Instant::now();
+            }
+            last_progress = Instant::now();
+        }
+        // Pictures as the run goes.
+        if rows.len() > pictured && (rows.len() - pictured >= 50 || last_picture.elapsed() >= Duration::from_secs(30)) {
+            draw_curves(&run, &cfg, &rows);
+            pictured = rows.len();
+            last_picture = Instant::now();
+        }
+        // Stop criteria.
+        if milestone.is_none() && rows.len() > first_episode_this_session && averages_met(&rows, &cfg.stop) {
+            milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
+            stopped_because = format!("order-{} moving averages reached the goal (return ≥ {:?}, steps ≥ {:?})", cfg.stop.window, cfg.stop.average_return, cfg.stop.average_steps);
+            stop.store(true, Ordering::Relaxed);
+        }
+        if let Some(k) = cfg.stop.episodes
+            && rows.len() as u64 >= k
+        {
+            stopped_because = format!("{k} episodes");
+            stop.store(true, Ordering::Relaxed);
+        }
+        if let Some(m) = cfg.stop.minutes
+            && started.elapsed().as_secs_f64() >= m * 60.0
+        {
+            stopped_because = format!("{m} minutes");
+            stop.store(true, Ordering::Relaxed);
+        }
+        if stop.load(Ordering::Relaxed) {
+            break;
+        }
+        // Supervision.
+        let mut restarted = false;
+        for (i, a) in actors.iter_mut().enumerate() {
+            if let Some(st) = a.exited() {
+                restarts += 1;
+                a.restarts += 1;
+                if tty {
+                    eprintln!();
+                }
+                tracing::warn!(actor = i, status = %st, "actor exited; restarting it");
+                a.start(Some(line_tx.clone()))?;
+                restarted = true;
+            }
+        }
+        if restarted {
+            write_pids(&run, &replay, &learner, &actors)?;
+        }
+        if let Some(st) = learner.exited() {
+            if learner.restarts >= 3 {
+                eprintln!();
+                bail!("the learner exited ({st}) for the 4th time; see {}", learner.log.display());
+            }
+            eprintln!();
+            tracing::warn!(status = %st, "learner exited; restarting it from its newest checkpoint");
+            learner.restarts += 1;
+            restarts += 1;
+            learner.start(Some(line_tx.clone()))?;
+            write_pids(&run, &replay, &learner, &actors)?;
+        }
+        if let Some(st) = replay.exited() {
+            if replay.restarts >= 3 {
+                eprintln!();
+                bail!("the replay exited ({st}) for the 4th time; see {}", replay.log.display());
+            }
+            eprintln!();
+            tracing::warn!(status = %st, "replay exited; restarting it (it restores from its log)");
+            replay.restarts += 1;
+            restarts += 1;
+            replay.start(Some(line_tx.clone()))?;
+            write_pids(&run, &replay, &learner, &actors)?;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    if tty {
+        eprintln!();
+    }
+    let stop_point = (Instant::now(), inserts_total, learner_status.lock().unwrap_or_else(|e| e.into_inner()).updates);
+    eprintln!("stopping: {stopped_because}");
+
+    // Orderly shutdown: actors (flush their batches), the learner (final checkpoint), the replay.
+    for a in &mut actors {
+        if let Some(c) = a.child.as_ref() {
+            let _ = Command::new("kill").arg("-TERM").arg(c.id().to_string()).status();
+        }
+    }
+    for a in &mut actors {
+        a.stop(Duration::from_secs(15));
+    }
+    learner.stop(Duration::from_secs(60));
+    // Episodes that arrived while the actors stopped.
+    while let Ok(e) = ep_rx.try_recv() {
+        if !e.evaluation {
+            let row = EpisodeRow { episode: rows.len() as u64 + 1, wall_s: offset_s + started.elapsed().as_secs_f64(), actor_id: e.actor_id, policy_version: e.policy_version, episode_return: e.episode_return, steps: e.steps, terminal: e.terminal, eqs: e.eqs, ees: e.ees, distance_m: e.distance_m, shaded_time_s: e.shaded_time_s };
+            writeln!(csv, "{}", row.csv())?;
+            rows.push(row);
+        }
+    }
+    replay.stop(Duration::from_secs(60));
+    let _ = collector_stop_tx.send(true);
+    rt.shutdown_timeout(Duration::from_secs(2));
+    drop(line_tx);
+    let final_updates = {
+        let mut u = learner_status.lock().unwrap_or_else(|e| e.into_inner()).updates;
+        while let Ok((role, line)) = line_rx.try_recv() {
+            if role == "learner"
+                && let Ok(v) = serde_json::from_str::<serde_json::Value>(&line)
+            {
+                u = v["updates"].as_u64().unwrap_or(u);
+            }
+        }
+        u
+    };
+    draw_curves(&run, &cfg, &rows);
+
+    // Evaluation of the final policy.
+    let evaluation = if cfg.eval.episodes > 0 && run.join("policy.safetensors").exists() {
+        let map = cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone());
+        eprintln!("evaluating the final policy: {} episodes on {map} (deterministic) ...", cfg.eval.episodes);
+        match eval::evaluate(&run.join("policy.safetensors"), &map, &cfg.env, cfg.eval.episodes, cfg.seed.wrapping_add(1_000_003), Some(&run.join("eval"))) {
+            Ok(s) => {
+                eprintln!("  {}", s.one_line());
+                Some(s)
+            }
+            Err(e) => {
+                tracing::warn!(error = %format!("{e:#}"), "evaluation failed");
+                None
+            }
+        }
+    } else {
+        None
+    };
+
+    let w = cfg.stop.window;
+    let steady = steady_start.map(|(t, e, u)| {
+        let secs = (stop_point.0 - t).as_secs_f64().max(1e-9);
+        Rates { from_s: (t - started).as_secs_f64(), seconds: secs, env_steps_per_s: stop_point.1.saturating_sub(e) as f64 / secs, updates_per_s: stop_point.2.saturating_sub(u) as f64 / secs }
+    });
+    let summary = Summary {
+        run: run.display().to_string(),
+        preset: cfg.name.clone(),
+        stopped_because,
+        wall_s: offset_s + started.elapsed().as_secs_f64(),
+        episodes: rows.len() as u64,
+        env_steps: inserts_total,
+        updates: final_updates,
+        weights_version: learner_status.lock().unwrap_or_else(|e| e.into_inner()).weights_version,
+        average_return: trailing_mean(rows.iter().map(|e| e.episode_return), w),
+        average_steps: trailing_mean(rows.iter().map(|e| f64::from(e.steps)), w),
+        window: w,
+        criteria_met_at: milestone,
+        actor_restarts: actors.iter().map(|a| a.restarts).sum(),
+        steady,
+        evaluation,
+    };
+    fs::write(run.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    eprintln!(
+        "done: {} episodes, {} env steps, {} updates in {:.0} s; avg{w} return {:.1}, steps {:.0}",
+        summary.episodes, fmt_int(summary.env_steps), fmt_int(summary.updates), summary.wall_s, summary.average_return, summary.average_steps
+    );
+    eprintln!("  pictures: {}/curves.png, {}/eval/; summary: {}/summary.json", run.display(), run.display(), run.display());
+    Ok(())
+}
+
+/// `pids.json`: the processes of the run now (tests and operators use it).
+fn write_pids(run: &Path, replay: &Proc, learner: &Proc, actors: &[Proc]) -> Result<()> {
+    let v = serde_json::json!({
+        "supervisor": std::process::id(), "replay": replay.pid(), "learner": learner.pid(),
+        "actors": actors.iter().map(Proc::pid).collect::<Vec<_>>(),
+        "restarts": actors.iter().map(|a| a.restarts).sum::<u32>() + learner.restarts + replay.restarts,
+    });
+    let tmp = run.join("pids.json.tmp");
+    fs::write(&tmp, serde_json::to_string(&v)?)?;
+    fs::rename(&tmp, run.join("pids.json"))?;
+    Ok(())
+}
+
+fn draw_curves(run: &Path, cfg: &TrainConfig, rows: &[EpisodeRow]) {
+    let points: Vec<CurvePoint> = rows.iter().map(|r| CurvePoint { episode: r.episode, episode_return: r.episode_return, steps: r.steps }).collect();
+    let style = CurveStyle {
+        title: format!("{} - order-{} moving averages", cfg.name, cfg.stop.window),
+        window: cfg.stop.window,
+        return_goal: cfg.stop.average_return,
+        steps_goal: cfg.stop.average_steps,
+        footer: format!("{} episodes", rows.len()),
+    };
+    if let Err(e) = training_curves_png(&points, &style, &run.join("curves.png")) {
+        tracing::warn!(error = %e, "cannot draw curves.png");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(episode: u64, ret: f64, steps: u32) -> EpisodeRow {
+        EpisodeRow { episode, wall_s: episode as f64, actor_id: "actor-0-1-2".into(), policy_version: 3, episode_return: ret, steps, terminal: steps < 1000, eqs: 12.0, ees: 1.5, distance_m: 40.0, shaded_time_s: 0.0 }
+    }
+
+    #[test]
+    fn every_preset_resolves_and_names_itself() {
+        for (name, text) in PRESETS {
+            let cfg: TrainConfig = serde_yaml::from_str(text).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let cfg = cfg.resolve().unwrap_or_else(|e| panic!("{name}: {e:#}"));
+            assert_eq!(&cfg.name, name);
+            assert_eq!(cfg.replay.obs_dim, 17, "{name}: 7 beams → 17 observation values");
+        }
+        let sar: TrainConfig = serde_yaml::from_str(preset_text("outdoor20-sac").unwrap().as_str()).unwrap();
+        assert_eq!(sar.resolve().unwrap().env.reward, RewardConfig::search_and_rescue());
+        let env2: TrainConfig = serde_yaml::from_str(preset_text("env2-td3").unwrap().as_str()).unwrap();
+        let env2 = env2.resolve().unwrap();
+        assert_eq!((env2.env.episode.max_steps, env2.learner.algorithm), (2000, AlgorithmKind::Td3));
+        assert_eq!(env2.noise(), NoiseConfig::TD3_DEFAULT);
+    }
+
+    #[test]
+    fn set_overrides_nested_fields_and_rejects_bad_paths() {
+        let mut doc: serde_yaml::Value = serde_yaml::from_str(preset_text("env1-sac").unwrap().as_str()).unwrap();
+        set_path(&mut doc, "learner.actor_lr", "1e-4").unwrap();
+        set_path(&mut doc, "replay.rate_limiter.samples_per_insert", "8").unwrap();
+        set_path(&mut doc, "stop.average_return", "null").unwrap();
+        let cfg: TrainConfig = serde_yaml::from_value(doc.clone()).unwrap();
+        assert_eq!(cfg.learner.actor_lr, 1e-4);
+        assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(8.0));
+        assert_eq!(cfg.stop.average_return, None);
+        assert!(set_path(&mut doc, "map.inner", "1").is_err(), "map is a string, not a section");
+        set_path(&mut doc, "learner.no_such_field", "1").unwrap();
+        assert!(serde_yaml::from_value::<TrainConfig>(doc).is_err(), "unknown fields are refused");
+    }
+
+    #[test]
+    fn stop_on_moving_averages_needs_a_full_window_and_both_goals() {
+        let stop = StopCriteria { window: 3, average_return: Some(300.0), average_steps: Some(990.0), ..StopCriteria::default() };
+        let mut rows = vec![row(1, 400.0, 1000), row(2, 400.0, 1000)];
+        assert!(!averages_met(&rows, &stop), "fewer episodes than the window");
+        rows.push(row(3, 400.0, 1000));
+        assert!(averages_met(&rows, &stop));
+        rows.push(row(4, 400.0, 900)); // steps average (1000+1000+900)/3 = 966.7 < 990
+        assert!(!averages_met(&rows, &stop));
+        let only_return = StopCriteria { average_steps: None, ..stop.clone() };
+        assert!(averages_met(&rows, &only_return));
+        let none = StopCriteria { average_return: None, average_steps: None, ..stop };
+        assert!(!averages_met(&rows, &none), "no goals: never stops on averages");
+    }
+
+    #[test]
+    fn episodes_csv_round_trips_and_skips_a_torn_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("episodes.csv");
+        let rows = vec![row(1, -12.5, 37), row(2, 321.25, 1000)];
+        let mut text = format!("{CSV_HEADER}\n");
+        for r in &rows {
+            text.push_str(&r.csv());
+            text.push('\n');
+        }
+        text.push_str("3,12.0,actor-0");
+        std::fs::write(&p, text).unwrap();
+        let (back, bad) = read_episodes(&p);
+        assert_eq!(bad, 1);
+        assert_eq!(back, rows);
+    }
+}

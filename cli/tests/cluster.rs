@@ -1,0 +1,167 @@
+//! The local cluster end to end, as real processes: `mapless train` starts the replay, the
+//! learner and two actors on a tiny budget. Checked: transitions from every actor reach the
+//! replay; the learner's policy version advances at the actors (their rows carry newer
+//! versions); `kill -9` of an actor leaves training running and the supervisor restarts it;
+//! an interrupted run resumed with `--resume` continues from its checkpoint and its curve.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use mapless_proto::v1::replay_service_client::ReplayServiceClient;
+use mapless_proto::v1::{ProtocolVersion, ServerInfoRequest, ServerInfoResponse};
+
+/// `mapless`, with `mapless-actor` and `mapless-replay` beside it (built on first use with the
+/// same target selection as ./test.sh, so this only relinks).
+fn mapless() -> PathBuf {
+    let exe = PathBuf::from(env!("CARGO_BIN_EXE_mapless"));
+    let dir = exe.parent().unwrap().to_path_buf();
+    if !dir.join("mapless-actor").exists() || !dir.join("mapless-replay").exists() {
+        let mut cmd = Command::new(env!("CARGO"));
+        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
+        if dir.file_name().is_some_and(|n| n == "release") {
+            cmd.arg("--release");
+        }
+        assert!(cmd.status().expect("cargo runs").success(), "building the cluster binaries failed");
+    }
+    exe
+}
+
+/// Settings that make a run small and quick: narrow networks, tiny batches, short episodes,
+/// frequent publishing and checkpoints.
+const TINY: &[&str] = &[
+    "learner.hidden_width=16",
+    "learner.batch_size=16",
+    "replay.capacity=20000",
+    "replay.rate_limiter.min_size_to_sample=100",
+    "replay.rate_limiter.samples_per_insert=4",
+    "replay.rate_limiter.error_buffer=2000",
+    "actors.warmup_steps=50",
+    "actors.batch_rows=16",
+    "max_steps=60",
+    "driver.publish_every=5",
+    "driver.checkpoint_every=100",
+    "driver.metrics_every=50",
+    "eval.episodes=1",
+    "stop.average_return=null",
+    "stop.average_steps=null",
+];
+
+fn train(run: &Path, extra: &[&str]) -> Child {
+    let mut cmd = Command::new(mapless());
+    cmd.arg("train").args(extra);
+    for s in TINY {
+        cmd.args(["--set", s]);
+    }
+    cmd.env_remove("RUST_LOG").stdin(Stdio::null()).stdout(Stdio::null()).stderr(std::fs::File::create(run.with_extension("stderr")).unwrap());
+    cmd.spawn().expect("mapless train starts")
+}
+
+fn wait_for<T>(what: &str, timeout: Duration, child: &mut Child, run: &Path, mut f: impl FnMut() -> Option<T>) -> T {
+    let end = Instant::now() + timeout;
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        if let Ok(Some(st)) = child.try_wait() {
+            panic!("mapless train exited ({st}) while waiting for {what}; its output:\n{}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default());
+        }
+        assert!(Instant::now() < end, "timed out waiting for {what}; output:\n{}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default());
+        std::thread::sleep(Duration::from_millis(250));
+    }
+}
+
+fn json(path: &Path) -> Option<serde_json::Value> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
+fn server_info(rt: &tokio::runtime::Runtime, uri: &str) -> Option<ServerInfoResponse> {
+    rt.block_on(async {
+        let mut c = ReplayServiceClient::connect(uri.to_owned()).await.ok()?;
+        c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32, ..Default::default() }).await.ok().map(|r| r.into_inner())
+    })
+}
+
+fn sigterm(pid: u32) {
+    assert!(Command::new("kill").args(["-TERM", &pid.to_string()]).status().unwrap().success());
+}
+
+fn wait_exit(child: &mut Child, timeout: Duration) -> std::process::ExitStatus {
+    let end = Instant::now() + timeout;
+    loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            return st;
+        }
+        if Instant::now() > end {
+            let _ = child.kill();
+            panic!("mapless train did not stop within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("tiny");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let run_arg = run.to_string_lossy().into_owned();
+    let mut child = train(&run, &["--preset", "env1-sac", "--actors", "2", "--vehicles", "2", "--run", &run_arg]);
+
+    let endpoints = wait_for("endpoints.json", Duration::from_secs(180), &mut child, &run, || json(&run.join("endpoints.json")));
+    let replay_uri = endpoints["replay"].as_str().unwrap().to_owned();
+
+    // Every actor's transitions reach the replay, and their rows carry advancing policy
+    // versions (the learner publishes; the actors follow).
+    let info = wait_for("rows from 2 actors with policy version >= 3", Duration::from_secs(240), &mut child, &run, || {
+        let i = server_info(&rt, &replay_uri)?;
+        let with_rows: Vec<_> = i.actors.iter().filter(|a| a.rows > 0 && a.last_policy_version >= 3).collect();
+        (with_rows.len() >= 2).then_some(i)
+    });
+    let first_ids: BTreeSet<String> = info.actors.iter().map(|a| a.actor_id.clone()).collect();
+    assert_eq!(first_ids.len(), 2, "two actor incarnations so far: {first_ids:?}");
+
+    // kill -9 one actor: the supervisor restarts it (a new incarnation writes rows), and the
+    // learner keeps updating.
+    let pids = json(&run.join("pids.json")).unwrap();
+    let victim = pids["actors"][0].as_u64().unwrap();
+    let updates_before = server_info(&rt, &replay_uri).unwrap().samples_total;
+    assert!(Command::new("kill").args(["-9", &victim.to_string()]).status().unwrap().success());
+    wait_for("a restarted actor writing rows", Duration::from_secs(180), &mut child, &run, || {
+        let i = server_info(&rt, &replay_uri)?;
+        let new_writer = i.actors.iter().any(|a| !first_ids.contains(&a.actor_id) && a.rows > 0);
+        (new_writer && i.samples_total > updates_before).then_some(())
+    });
+    let pids = json(&run.join("pids.json")).unwrap();
+    assert!(pids["restarts"].as_u64().unwrap() >= 1, "{pids}");
+    assert_ne!(pids["actors"][0].as_u64().unwrap(), victim);
+
+    // Stop (as Ctrl-C would): a final checkpoint, the curve, a summary.
+    std::thread::sleep(Duration::from_secs(3));
+    sigterm(child.id());
+    let st = wait_exit(&mut child, Duration::from_secs(180));
+    assert!(st.success(), "train exited with {st}: {}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default());
+    let first = json(&run.join("summary.json")).expect("summary.json");
+    let first_updates = first["updates"].as_u64().unwrap();
+    let first_episodes = first["episodes"].as_u64().unwrap();
+    assert!(first_updates > 0 && first_episodes > 0, "{first}");
+    assert!(first["actor_restarts"].as_u64().unwrap() >= 1);
+    assert!(run.join("checkpoints").join("LATEST").exists(), "a checkpoint was written");
+    assert!(run.join("curves.png").exists() && run.join("policy.safetensors").exists());
+    assert!(run.join("eval").join("episode-1.png").exists(), "evaluation trajectory drawn");
+
+    // Resume: the learner continues from its checkpoint (updates keep counting up), episodes
+    // continue the same curve.
+    let mut child = train(&run, &["--resume", &run_arg, "--episodes", &(first_episodes + 20).to_string()]);
+    let st = wait_exit(&mut child, Duration::from_secs(400));
+    assert!(st.success(), "resumed train exited with {st}: {}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default());
+    let second = json(&run.join("summary.json")).unwrap();
+    assert!(second["updates"].as_u64().unwrap() > first_updates, "updates continue from the checkpoint: {first} then {second}");
+    assert!(second["episodes"].as_u64().unwrap() >= first_episodes + 20, "{second}");
+    let learner_log = std::fs::read_to_string(run.join("logs").join("learner.log")).unwrap();
+    assert!(learner_log.contains("resumed from checkpoint"), "learner log: {learner_log}");
+    let csv = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
+    let numbers: Vec<u64> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
+    assert_eq!(numbers, (1..=numbers.len() as u64).collect::<Vec<_>>(), "one curve, numbered without gaps");
+}
