@@ -1,19 +1,19 @@
 #!/usr/bin/env bash
-# mapless — the main job, on an embedded default.
+# mapless — the main job, on an embedded default: train SAC on env1 with a local actor–learner
+# cluster (replay service, learner, 2 actor processes, all on this machine, supervised), until
+# the order-50 moving averages of episode return and steps reach the paper's SAC figures
+# (return ≥ 320, steps ≥ 990 of 1000) or 30 minutes have passed. Then the final policy is
+# evaluated on env1 and the pictures are in runs/env1-sac/ (curves.png, eval/episode-*.png).
 #
-# Today (issue 2): builds the `mapless` command and drives one simulated 1000-step episode in
-# the paper's first environment (env1) with the built-in reactive driver, writing the
-# trajectory picture (EQS cells, rings) and the episode's numbers to runs/demo/. Later issues
-# turn this into local actor–learner training with SAC on env1.
-#
-# Works from any directory; idempotent (rebuilds only what changed, overwrites runs/demo/).
-# Extra arguments go to `mapless rollout`, e.g. `./run.sh --map outdoor20 --reward sar`.
+# Works from any directory; idempotent (rebuilds only what changed; starts runs/env1-sac/ afresh).
+# Extra arguments go to `mapless train`, e.g. `./run.sh --minutes 60 --actors 3`.
+# Continue a run instead: `target/release/mapless train --resume runs/env1-sac`.
 set -euo pipefail
 root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$root"
 command -v cargo >/dev/null || { echo "run.sh: cargo not found; install Rust from https://rustup.rs" >&2; exit 1; }
 # `mapless` links the learner, hence libtorch: install torch 2.13.0 into .torch/ (once).
 bash "$root/scripts/setup-torch.sh"
-echo "run.sh: building mapless (release)…"
-cargo build --release --locked -p mapless-cli
-exec "$root/target/release/mapless" rollout --map env1 --steps 1000 --seed 0 --out "$root/runs/demo" "$@"
+echo "run.sh: building mapless, mapless-actor and mapless-replay (release)…"
+cargo build --release --locked -p mapless-cli -p mapless-actor -p mapless-replay --bins
+exec "$root/target/release/mapless" train --preset env1-sac --run "$root/runs/env1-sac" --force --minutes 30 "$@"

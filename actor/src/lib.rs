@@ -9,6 +9,7 @@
 //! - [`stats`]: episode statistics, reported and collected;
 //! - [`run`]: one actor process's loop (the `mapless-actor` binary).
 
+pub mod metrics;
 pub mod net;
 pub mod noise;
 pub mod policy;

@@ -15,7 +15,7 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, WeightsSnapshot};
@@ -121,6 +121,9 @@ pub struct ActorConfig {
     /// Base seed; process `index` uses its own streams derived from it.
     #[serde(default)]
     pub seed: u64,
+    /// Prometheus `/metrics` address (loopback; port 0 picks one, logged at start); none: off.
+    #[serde(default)]
+    pub metrics_listen: Option<std::net::SocketAddr>,
 }
 
 fn default_in_flight() -> usize {
@@ -155,6 +158,29 @@ pub struct ActorReport {
     pub bad_snapshots: u64,
     pub unacked_at_exit: bool,
     pub sink: SinkStats,
+}
+
+/// What `/metrics` shows, updated every step.
+#[derive(Default)]
+struct Gauges {
+    vehicle_steps: AtomicU64,
+    episodes: AtomicU64,
+    policy_version: AtomicU64,
+    batches_acked: AtomicU64,
+    reconnects: AtomicU64,
+}
+
+impl Gauges {
+    fn render(&self) -> String {
+        let mut out = String::new();
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
+        crate::metrics::line(&mut out, "mapless_actor_vehicle_steps_total", "counter", "Vehicle-steps taken by this actor process.", g(&self.vehicle_steps));
+        crate::metrics::line(&mut out, "mapless_actor_episodes_total", "counter", "Training episodes finished.", g(&self.episodes));
+        crate::metrics::line(&mut out, "mapless_actor_policy_version", "gauge", "Weights version acting now (0: warm-up).", g(&self.policy_version));
+        crate::metrics::line(&mut out, "mapless_actor_batches_acked_total", "counter", "Transition batches acknowledged by the replay.", g(&self.batches_acked));
+        crate::metrics::line(&mut out, "mapless_actor_reconnects_total", "counter", "Replay connections reopened.", g(&self.reconnects));
+        out
+    }
 }
 
 /// An actor id unique to this incarnation: `actor-<index>-<pid>-<unix ms>` (a restarted
@@ -207,6 +233,19 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     };
 
     let mut report = ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() };
+    let gauges = Arc::new(Gauges::default());
+    if let Some(addr) = cfg.metrics_listen {
+        let listener = rt.block_on(tokio::net::TcpListener::bind(addr))?;
+        tracing::info!(addr = %listener.local_addr()?, "metrics on /metrics");
+        let g = Arc::clone(&gauges);
+        let render: crate::metrics::Render = Arc::new(move || g.render());
+        let stop = stop_rx.clone();
+        rt.spawn(async move {
+            if let Err(e) = crate::metrics::serve(listener, render, stop).await {
+                tracing::warn!(error = %e, "metrics endpoint stopped");
+            }
+        });
+    }
     let mut policy: Option<Policy> = None;
     let mut noise = Noise::new(cfg.exploration.noise, n, 2);
     let mut obs = vec![0.0f32; n * d];
@@ -311,6 +350,11 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
                 break;
             }
         }
+        gauges.vehicle_steps.store(report.vehicle_steps, Ordering::Relaxed);
+        gauges.episodes.store(report.episodes, Ordering::Relaxed);
+        gauges.policy_version.store(report.policy_version, Ordering::Relaxed);
+        gauges.batches_acked.store(sink.stats().acked, Ordering::Relaxed);
+        gauges.reconnects.store(sink.stats().reconnects, Ordering::Relaxed);
         if last_log.elapsed() >= Duration::from_secs(10) {
             let s = sink.stats();
             tracing::info!(

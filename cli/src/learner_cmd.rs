@@ -12,7 +12,7 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
@@ -22,6 +22,7 @@ use mapless_learner::driver::{Driver, DriverConfig};
 use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig};
 use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve, write_safetensors_file};
 use mapless_learner::{TorchThreads, checkpoint};
+use mapless_replay::server::{ServerConfig, TlsFiles};
 use serde::{Deserialize, Serialize};
 
 /// Everything the learner process needs (`mapless train` writes it as `learner.yaml`).
@@ -53,6 +54,43 @@ pub struct LearnerServiceConfig {
     /// libtorch threads (intra-op); inter-op is 1.
     #[serde(default = "one")]
     pub threads: usize,
+    /// The weights service's TLS certificate and key (required, with `auth_token_file`, on a
+    /// non-loopback `weights_listen`).
+    #[serde(default)]
+    pub tls: Option<TlsFiles>,
+    /// File holding the bearer token subscribers must send.
+    #[serde(default)]
+    pub auth_token_file: Option<PathBuf>,
+    /// CA and token for reaching a replay service on another host.
+    #[serde(default)]
+    pub replay_security: mapless_actor::run::Security,
+    /// Prometheus `/metrics` address (loopback); none: off.
+    #[serde(default)]
+    pub metrics_listen: Option<SocketAddr>,
+}
+
+/// What `/metrics` shows.
+#[derive(Default)]
+struct Gauges {
+    updates: AtomicU64,
+    updates_per_s_milli: AtomicU64,
+    weights_version: AtomicU64,
+    batches: AtomicU64,
+    reconnects: AtomicU64,
+}
+
+impl Gauges {
+    fn render(&self) -> String {
+        use mapless_actor::metrics::line;
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
+        let mut out = String::new();
+        line(&mut out, "mapless_learner_updates_total", "counter", "Gradient updates done.", g(&self.updates));
+        line(&mut out, "mapless_learner_updates_per_second", "gauge", "Updates per second over the last second.", g(&self.updates_per_s_milli) / 1000.0);
+        line(&mut out, "mapless_learner_weights_version", "gauge", "Newest published weights version.", g(&self.weights_version));
+        line(&mut out, "mapless_learner_minibatches_total", "counter", "Minibatches received from the replay.", g(&self.batches));
+        line(&mut out, "mapless_learner_replay_reconnects_total", "counter", "Replay sample streams reopened.", g(&self.reconnects));
+        out
+    }
 }
 
 fn one() -> usize {
@@ -108,7 +146,8 @@ pub fn run(config_path: &Path) -> Result<()> {
         });
     }
 
-    let mut source_cfg = GrpcSourceConfig::new(GrpcEndpoint::new(cfg.replay.clone()), cfg.learner.batch_size as u32);
+    let endpoint: GrpcEndpoint = cfg.replay_security.endpoint(&cfg.replay)?;
+    let mut source_cfg = GrpcSourceConfig::new(endpoint, cfg.learner.batch_size as u32);
     source_cfg.expected_dims = Some((cfg.obs_dim, cfg.act_dim));
     let source = Box::new(GrpcSource::start(source_cfg)?);
     let publisher = WeightsPublisher::new();
@@ -118,7 +157,7 @@ pub fn run(config_path: &Path) -> Result<()> {
         d
     } else {
         if cfg.resume {
-            tracing::warn!(dir = %cfg.checkpoint_dir.display(), "no checkpoint to resume from; starting fresh");
+            tracing::info!(dir = %cfg.checkpoint_dir.display(), "no checkpoint yet; starting fresh");
         }
         let agent = Agent::new(&cfg.learner, cfg.obs_dim, cfg.act_dim)?;
         Driver::new(agent, source, publisher.clone(), cfg.driver.clone(), 0)?
@@ -132,9 +171,27 @@ pub fn run(config_path: &Path) -> Result<()> {
     let listener = rt.block_on(tokio::net::TcpListener::bind(cfg.weights_listen)).with_context(|| format!("binding the weights service on {}", cfg.weights_listen))?;
     let addr = listener.local_addr()?;
     let mut shutdown = stop_rx.clone();
-    let server = rt.spawn(serve(listener, publisher, ServeOptions::default(), async move {
+    let security = ServerConfig { tls: cfg.tls.clone(), auth_token_file: cfg.auth_token_file.clone(), ..ServerConfig::default() }.security()?;
+    if !addr.ip().is_loopback() && (security.tls.is_none() || security.token.is_none()) {
+        anyhow::bail!("weights_listen {addr} is not loopback: set tls (cert, key) and auth_token_file, or listen on 127.0.0.1");
+    }
+    let options = ServeOptions { security, ..ServeOptions::default() };
+    let server = rt.spawn(serve(listener, publisher, options, async move {
         let _ = shutdown.wait_for(|s| *s).await;
     }));
+    let gauges = Arc::new(Gauges::default());
+    if let Some(m) = cfg.metrics_listen {
+        let listener = rt.block_on(tokio::net::TcpListener::bind(m)).with_context(|| format!("binding /metrics on {m}"))?;
+        tracing::info!(addr = %listener.local_addr()?, "metrics on /metrics");
+        let g = Arc::clone(&gauges);
+        let render: mapless_actor::metrics::Render = Arc::new(move || g.render());
+        let stop = stop_rx.clone();
+        rt.spawn(async move {
+            if let Err(e) = mapless_actor::metrics::serve(listener, render, stop).await {
+                tracing::warn!(error = %e, "metrics endpoint stopped");
+            }
+        });
+    }
     println!("weights on {addr}");
     // Publish now: actors act with the initial (or, resumed, the newest) policy while the
     // replay fills.
@@ -157,6 +214,11 @@ pub fn run(config_path: &Path) -> Result<()> {
                 reconnects: s.reconnects,
             };
             println!("{}", serde_json::to_string(&status)?);
+            gauges.updates.store(status.updates, Ordering::Relaxed);
+            gauges.updates_per_s_milli.store((status.updates_per_s * 1000.0) as u64, Ordering::Relaxed);
+            gauges.weights_version.store(status.weights_version, Ordering::Relaxed);
+            gauges.batches.store(status.batches, Ordering::Relaxed);
+            gauges.reconnects.store(status.reconnects, Ordering::Relaxed);
             last = (Instant::now(), n);
         }
         if last_policy_write.elapsed() >= Duration::from_secs(30) {

@@ -229,17 +229,20 @@ fn main() {
 
 fn init_logging(json: bool, default_level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| default_level.into());
-    let b = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    // No colour codes when stderr is a file (the run folder's logs/).
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let b = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
     if json { b.json().init() } else { b.init() }
 }
 
 fn run(cli: Cli) -> Result<()> {
+    let log_json = cli.log_json;
     match cli.cmd {
         Cmd::Maps { cmd: MapsCmd::List } => maps_list(),
         Cmd::Maps { cmd: MapsCmd::Show { map, out, px_per_m } } => maps_show(&map, &out, px_per_m),
         Cmd::Maps { cmd: MapsCmd::Rasterize { map, resolution, out } } => maps_rasterize(&map, resolution, &out),
         Cmd::Rollout(a) => rollout(a),
-        Cmd::Train(a) => train::train(&a),
+        Cmd::Train(a) => train::train(&a, log_json),
         Cmd::Eval(a) => eval_cmd(&a),
         Cmd::Learner { config, run } => {
             let span = tracing::info_span!("learner", run = %run, role = "learner");

@@ -274,19 +274,19 @@ pub struct TrainArgs {
     #[arg(long, default_value = "env1-sac", conflicts_with = "resume")]
     pub preset: String,
     /// Actor processes (overrides the preset).
-    #[arg(long)]
+    #[arg(long, overrides_with = "actors")]
     pub actors: Option<usize>,
     /// Vehicles per actor process (overrides the preset).
-    #[arg(long)]
+    #[arg(long, overrides_with = "vehicles")]
     pub vehicles: Option<usize>,
     /// Stop after K training episodes (overrides the preset).
-    #[arg(long)]
+    #[arg(long, overrides_with = "episodes")]
     pub episodes: Option<u64>,
     /// Stop after this many minutes (overrides the preset).
-    #[arg(long)]
+    #[arg(long, overrides_with = "minutes")]
     pub minutes: Option<f64>,
     /// Run folder [default: runs/<preset name>].
-    #[arg(long)]
+    #[arg(long, overrides_with = "run")]
     pub run: Option<PathBuf>,
     /// Continue the run in this folder (its config, checkpoint, replay and curves).
     #[arg(long, value_name = "RUN")]
@@ -588,7 +588,7 @@ fn fmt_int(n: u64) -> String {
 }
 
 /// Runs `mapless train`.
-pub fn train(args: &TrainArgs) -> Result<()> {
+pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let (cfg, run, resuming) = load_config(args)?;
     if args.print_config {
         print!("{}", serde_yaml::to_string(&cfg)?);
@@ -621,6 +621,7 @@ pub fn train(args: &TrainArgs) -> Result<()> {
     let replay_addr = free_port()?;
     let replay_metrics = free_port()?;
     let weights_addr = free_port()?;
+    let learner_metrics = free_port()?;
     // One iceoryx2 domain per run folder: runs on one host stay apart, and a restarted
     // replay or actor cleans what a killed predecessor of *this* run left.
     let domain = format!("mpl{:08x}_", crc32fast::hash(run_abs.to_string_lossy().as_bytes()));
@@ -644,6 +645,10 @@ pub fn train(args: &TrainArgs) -> Result<()> {
         policy_file: Some(run_abs.join("policy.safetensors")),
         resume: true,
         threads: cfg.threads.learner,
+        tls: None,
+        auth_token_file: None,
+        replay_security: Default::default(),
+        metrics_listen: Some(learner_metrics),
     };
     fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
 
@@ -670,6 +675,8 @@ pub fn train(args: &TrainArgs) -> Result<()> {
         stats: Some(format!("http://{stats_addr}")),
         security: Default::default(),
         seed: cfg.seed,
+        // Each actor process logs the port it got.
+        metrics_listen: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
     };
     fs::write(run.join("actor.yaml"), serde_yaml::to_string(&actor_cfg)?)?;
 
@@ -681,12 +688,23 @@ pub fn train(args: &TrainArgs) -> Result<()> {
 
     eprintln!("mapless train: {} — {} ({} actors × {} vehicles); run folder {}", cfg.name, cfg.description, cfg.actors.count, cfg.actors.vehicles, run.display());
     eprintln!("  logs: {}/  TensorBoard: tensorboard --logdir {}/tensorboard", logs.display(), run.display());
-    let mut replay = Proc::spawn("replay", vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))], logs.join("replay.log"), Some(line_tx.clone()))?;
+    // `mapless --log-json train` makes every process log JSON lines.
+    let json_flag = |mut v: Vec<String>| {
+        if log_json {
+            v.push("--log-json".into());
+        }
+        v
+    };
+    let mut replay = Proc::spawn("replay", json_flag(vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))]), logs.join("replay.log"), Some(line_tx.clone()))?;
     wait_line(&line_rx, "replay", "listening on", Duration::from_secs(120), &mut replay)?;
-    let learner_cmd = vec![exe, "learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()];
+    let mut learner_cmd = vec![exe];
+    if log_json {
+        learner_cmd.push("--log-json".into());
+    }
+    learner_cmd.extend(["learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()]);
     let mut learner = Proc::spawn("learner", learner_cmd, logs.join("learner.log"), Some(line_tx.clone()))?;
     wait_line(&line_rx, "learner", "weights on", Duration::from_secs(120), &mut learner)?;
-    let actor_cmd = |i: usize| vec![actor_bin.clone(), "--config".into(), p(&run_abs.join("actor.yaml")), "--index".into(), i.to_string(), "--run".into(), run_name.clone()];
+    let actor_cmd = |i: usize| json_flag(vec![actor_bin.clone(), "--config".into(), p(&run_abs.join("actor.yaml")), "--index".into(), i.to_string(), "--run".into(), run_name.clone()]);
     let mut actors: Vec<Proc> = Vec::new();
     for i in 0..cfg.actors.count {
         actors.push(Proc::spawn(&format!("actor-{i}"), actor_cmd(i), logs.join(format!("actor-{i}.log")), Some(line_tx.clone())).with_context(|| format!("actor {i}"))?);
@@ -695,7 +713,7 @@ pub fn train(args: &TrainArgs) -> Result<()> {
         run.join("endpoints.json"),
         serde_json::to_string_pretty(&serde_json::json!({
             "replay": format!("http://{replay_addr}"), "replay_metrics": format!("http://{replay_metrics}/metrics"),
-            "weights": format!("http://{weights_addr}"), "stats": format!("http://{stats_addr}"),
+            "weights": format!("http://{weights_addr}"), "learner_metrics": format!("http://{learner_metrics}/metrics"), "stats": format!("http://{stats_addr}"),
             "shm_prefix": shm.prefix, "shm_domain": shm.domain,
         }))?,
     )?;
@@ -825,7 +843,9 @@ pub fn train(args: &TrainArgs) -> Result<()> {
         // Stop criteria.
         if milestone.is_none() && rows.len() > first_episode_this_session && averages_met(&rows, &cfg.stop) {
             milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
-            stopped_because = format!("order-{} moving averages reached the goal (return ≥ {:?}, steps ≥ {:?})", cfg.stop.window, cfg.stop.average_return, cfg.stop.average_steps);
+            let goal = |name: &str, g: Option<f64>| g.map(|g| format!("{name} ≥ {g}"));
+            let goals: Vec<String> = [goal("return", cfg.stop.average_return), goal("steps", cfg.stop.average_steps)].into_iter().flatten().collect();
+            stopped_because = format!("order-{} moving averages reached the goal ({})", cfg.stop.window, goals.join(", "));
             stop.store(true, Ordering::Relaxed);
         }
         if let Some(k) = cfg.stop.episodes
