@@ -11,6 +11,7 @@
 
 mod device;
 mod error;
+mod malloc;
 pub mod nets;
 mod threads;
 

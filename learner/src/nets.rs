@@ -162,7 +162,9 @@ mod tests {
 /// step, a soft target update, a checkpoint restore) is an update of the parameters, with one
 /// kernel launch for the whole network. Gradients come back per parameter from
 /// `Tensor::run_backward` and are concatenated into one flat gradient
-/// ([`ParamSet::flat_grad`]).
+/// ([`ParamSet::flat_grad`], or [`ParamSet::flat_grad_into`] a reused buffer).
+/// [`ParamSet::frozen`] are the same views without gradient, for evaluating a network
+/// inside another network's loss.
 ///
 /// Why not `tch::nn::VarStore`: its optimiser state cannot be checkpointed (see
 /// [`crate::optim`]), and one buffer per network keeps an update's launch count low.
@@ -172,6 +174,8 @@ pub struct ParamSet {
     names: Vec<String>,
     shapes: Vec<Vec<i64>>,
     params: Vec<Tensor>,
+    /// The same views without gradient ([`ParamSet::frozen`]).
+    frozen: Vec<Tensor>,
 }
 
 impl ParamSet {
@@ -202,8 +206,9 @@ impl ParamSet {
             names,
             shapes,
             params: Vec::new(),
+            frozen: Vec::new(),
         };
-        set.params = set.make_views();
+        (set.params, set.frozen) = set.make_views();
         Ok(set)
     }
 
@@ -223,32 +228,39 @@ impl ParamSet {
             names,
             shapes: self.shapes.clone(),
             params: Vec::new(),
+            frozen: Vec::new(),
         };
-        set.params = set.make_views();
+        (set.params, set.frozen) = set.make_views();
         set
     }
 
-    fn make_views(&self) -> Vec<Tensor> {
+    /// `(params, frozen)`: per-parameter views of `flat`, the first requiring gradient.
+    fn make_views(&self) -> (Vec<Tensor>, Vec<Tensor>) {
         let mut offset = 0;
         self.shapes
             .iter()
             .map(|shape| {
                 let numel: i64 = shape.iter().product();
-                let view = self
-                    .flat
-                    .narrow(0, offset, numel)
-                    .view(shape.as_slice())
-                    .detach()
-                    .set_requires_grad(true);
+                let view = self.flat.narrow(0, offset, numel).view(shape.as_slice());
                 offset += numel;
-                view
+                // Two `detach`es: two tensor objects on the same bytes, so that setting
+                // `requires_grad` on one leaves the other without.
+                (view.detach().set_requires_grad(true), view.detach())
             })
-            .collect()
+            .unzip()
     }
 
     /// The parameters in layout order, for forward passes and `run_backward`.
     pub fn params(&self) -> &[Tensor] {
         &self.params
+    }
+
+    /// The parameters as views that do not require gradient: a forward pass through them
+    /// records no weight-gradient work, while gradients still flow to the inputs (a critic
+    /// evaluated inside the actor's loss). They share storage with [`ParamSet::params`], so
+    /// they always hold the current values.
+    pub fn frozen(&self) -> &[Tensor] {
+        &self.frozen
     }
 
     /// The flat buffer (no gradient). Modify it only under `no_grad`.
@@ -276,6 +288,13 @@ impl ParamSet {
     pub fn flat_grad(grads: &[Tensor]) -> Tensor {
         let flat: Vec<Tensor> = grads.iter().map(|g| g.reshape([-1])).collect();
         Tensor::cat(&flat, 0)
+    }
+
+    /// [`ParamSet::flat_grad`] written into `out` (flat, [`ParamSet::numel`] values), which
+    /// saves allocating a network-sized buffer per step.
+    pub fn flat_grad_into(grads: &[Tensor], out: &Tensor) {
+        let flat: Vec<Tensor> = grads.iter().map(|g| g.reshape([-1])).collect();
+        let _ = Tensor::cat_out(out, &flat, 0);
     }
 
     /// θ_t ← θ (a hard copy, e.g. initialising a target network).
@@ -491,11 +510,13 @@ mod param_tests {
         let set = ParamSet::new(mlp_specs("actor", 3, 4, 2, &mut rng), tch::Device::Cpu).unwrap();
         assert_eq!(set.numel(), 3 * 4 + 4 + 4 * 4 + 4 + 4 * 2 + 2);
         assert!(set.params().iter().all(|p| p.requires_grad()));
+        assert!(set.frozen().iter().all(|p| !p.requires_grad()));
         {
             let _g = tch::no_grad_guard();
             let _ = set.flat().shallow_clone().fill_(0.5);
         }
         assert_eq!(set.params()[2].double_value(&[1, 1]), 0.5);
+        assert_eq!(set.frozen()[2].double_value(&[1, 1]), 0.5);
         let x = Tensor::ones([5, 3], (tch::Kind::Float, tch::Device::Cpu));
         let loss = mlp_forward(set.params(), &x).sum(None);
         let grads = Tensor::run_backward(&[loss], set.params(), false, false);
@@ -503,6 +524,20 @@ mod param_tests {
         assert_eq!(flat.size(), vec![set.numel()]);
         // out.bias is last: d(sum)/d(bias) = batch size.
         assert_eq!(flat.double_value(&[set.numel() - 1]), 5.0);
+        let into = set.flat().zeros_like();
+        ParamSet::flat_grad_into(&grads, &into);
+        assert!(into.equal(&flat));
+        // Through the frozen views, gradient reaches the input only.
+        let x = x.set_requires_grad(true);
+        let loss = mlp_forward(set.frozen(), &x).sum(None);
+        let gx = Tensor::run_backward(&[&loss], &[&x], false, false);
+        let gp = Tensor::run_backward(
+            &[&mlp_forward(set.params(), &x).sum(None)],
+            &[&x],
+            false,
+            false,
+        );
+        assert!(gx[0].allclose(&gp[0], 1e-6, 1e-6, false));
     }
 
     #[test]

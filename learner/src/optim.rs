@@ -41,6 +41,8 @@ pub struct Adam {
     exp_avg_sq: Tensor,
     /// Steps taken (t).
     step: u64,
+    /// Work buffer for g² and the denominator (not state).
+    scratch: Tensor,
 }
 
 impl Adam {
@@ -53,6 +55,7 @@ impl Adam {
             exp_avg: Tensor::zeros([numel], opts),
             exp_avg_sq: Tensor::zeros([numel], opts),
             step: 0,
+            scratch: Tensor::zeros([numel], opts),
         }
     }
 
@@ -77,9 +80,12 @@ impl Adam {
         let bias_correction2 = 1.0 - beta2.powi(t);
         let step_size = self.lr / bias_correction1;
         let _ = self.exp_avg.lerp_(grad, 1.0 - beta1);
-        let _ = self.exp_avg_sq.lerp_(&grad.square(), 1.0 - beta2);
+        // g² and then the denominator go to the reused work buffer: no per-step allocation
+        // of a network-sized tensor (same kernels, same values as grad.square() / v.sqrt()).
+        let _ = grad.square_out(&self.scratch);
+        let _ = self.exp_avg_sq.lerp_(&self.scratch, 1.0 - beta2);
         // denom = (√v / √bc2 + ε) · (−1/step_size), so that θ + m/denom = θ − step_size·m/(…).
-        let mut denom = self.exp_avg_sq.sqrt();
+        let mut denom = self.exp_avg_sq.sqrt_out(&self.scratch);
         let _ = denom.divide_scalar_(bias_correction2.sqrt());
         let _ = denom.g_add_scalar_(eps);
         let _ = denom.g_mul_scalar_(-1.0 / step_size);

@@ -74,7 +74,7 @@ impl Ddpg {
         let _guard = tch::no_grad_guard();
         let next_action = mlp_forward(self.target_actor.params(), &b.next_obs).tanh();
         let q_next = critics(
-            &self.target_critic,
+            self.target_critic.params(),
             &b.next_obs,
             &next_action,
             self.c.cfg.fused_critics,
@@ -94,9 +94,15 @@ impl Ddpg {
             td_errors,
         } = critic_step(&mut self.critic, b, &y, &self.c)?;
 
-        // Eqs. 3–5: descend −mean Q(s, π(s)) in θ only.
+        // Eqs. 3–5: descend −mean Q(s, π(s)) in θ only (the critic through its frozen views:
+        // ∂Q/∂a flows, no critic weight gradient is computed).
         let action = mlp_forward(self.actor.net.params(), &b.obs).tanh();
-        let q = critics(&self.critic.net, &b.obs, &action, self.c.cfg.fused_critics);
+        let q = critics(
+            self.critic.net.frozen(),
+            &b.obs,
+            &action,
+            self.c.cfg.fused_critics,
+        );
         let actor_loss = -q.mean(None);
         let actor_loss_value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
         let actor_norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;

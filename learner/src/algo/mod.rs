@@ -144,6 +144,7 @@ impl Agent {
                 reason: format!("are {obs_dim}/{act_dim}; both must be ≥ 1"),
             });
         }
+        crate::malloc::retain_freed_memory();
         let device = crate::Device::parse(&cfg.device)?.to_tch();
         let common = Common::new(cfg.clone(), obs_dim, act_dim, device);
         Ok(match cfg.algorithm {
@@ -547,12 +548,15 @@ impl Explorer {
 pub(crate) struct Trained {
     pub net: ParamSet,
     pub opt: Adam,
+    /// The flat gradient of the last step (reused buffer, [`ParamSet::flat_grad_into`]).
+    grad: Tensor,
 }
 
 impl Trained {
     pub fn new(net: ParamSet, lr: f64, c: &Common) -> Self {
         let opt = Adam::new(net.numel(), c.device, lr, c.cfg.adam);
-        Self { net, opt }
+        let grad = net.flat().zeros_like();
+        Self { net, opt, grad }
     }
 
     /// ∇ of `loss` with respect to this network's parameters only (other networks in the
@@ -560,9 +564,9 @@ impl Trained {
     /// one Adam step. Returns the norm before clipping when clipping is on.
     pub fn step(&mut self, loss: &Tensor, clip: Option<f64>) -> Result<Option<f64>, LearnerError> {
         let grads = Tensor::f_run_backward(&[loss], self.net.params(), false, false)?;
-        let mut g = ParamSet::flat_grad(&grads);
-        let norm = clip.map(|c| clip_grad_norm(&mut g, c));
-        self.opt.step(self.net.flat(), &g);
+        ParamSet::flat_grad_into(&grads, &self.grad);
+        let norm = clip.map(|c| clip_grad_norm(&mut self.grad, c));
+        self.opt.step(self.net.flat(), &self.grad);
         Ok(norm)
     }
 }
@@ -588,10 +592,12 @@ pub(crate) fn deterministic_act(
 }
 
 /// Q-values of a stack of critics: `[K, B, 1]` for observations `[B, obs]` and actions
-/// `[B, act]` (the critic's input is their concatenation, paper §II-B).
-pub(crate) fn critics(set: &ParamSet, obs: &Tensor, action: &Tensor, fused: bool) -> Tensor {
+/// `[B, act]` (the critic's input is their concatenation, paper §II-B). `params` are a
+/// critic [`ParamSet`]'s [`ParamSet::params`], or its [`ParamSet::frozen`] views where only
+/// the action's gradient is wanted (the actor's loss).
+pub(crate) fn critics(params: &[Tensor], obs: &Tensor, action: &Tensor, fused: bool) -> Tensor {
     let x = Tensor::cat(&[obs, action], 1);
-    stacked_mlp_forward(set.params(), &x, fused)
+    stacked_mlp_forward(params, &x, fused)
 }
 
 /// What a critic step reports.
@@ -616,7 +622,7 @@ pub(crate) fn critic_step(
     y: &Tensor,
     c: &Common,
 ) -> Result<CriticStep, LearnerError> {
-    let q = critics(&critic.net, &b.obs, &b.action, c.cfg.fused_critics); // [K, B, 1]
+    let q = critics(critic.net.params(), &b.obs, &b.action, c.cfg.fused_critics); // [K, B, 1]
     let td = &q - y; // broadcast over K
     let loss = (td.square() * &b.weights).sum(None) / b.rows() as f64;
     let loss_value = loss.double_value(&[]);

@@ -132,16 +132,21 @@ impl Sac {
     /// yᵢ of eq. 9 for given standard-normal `eps` `[B, act_dim]` used to sample ãᵢ₊₁:
     /// Rᵢ + γ(1 − terminalᵢ)(min_k Q_tk(sᵢ₊₁, ãᵢ₊₁) − α ln π(ãᵢ₊₁|sᵢ₊₁)). `[B, 1]`.
     pub fn td_target(&self, b: &Minibatch, eps: &Tensor) -> Tensor {
+        self.td_target_with_alpha(b, eps, self.alpha())
+    }
+
+    /// [`Sac::td_target`] for a given α (the update reads α once).
+    fn td_target_with_alpha(&self, b: &Minibatch, eps: &Tensor, alpha: f64) -> Tensor {
         let _guard = tch::no_grad_guard();
         let next = self.sample_with(&b.next_obs, eps);
         let q_next = critics(
-            &self.target_critic,
+            self.target_critic.params(),
             &b.next_obs,
             &next.action,
             self.c.cfg.fused_critics,
         )
         .amin(0, false);
-        let soft_value = q_next - next.log_prob * self.alpha();
+        let soft_value = q_next - next.log_prob * alpha;
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * soft_value * self.c.cfg.gamma
     }
@@ -152,7 +157,7 @@ impl Sac {
         let eps_now = self.c.noise.normal(rows, act, device);
         let alpha = self.alpha();
 
-        let y = self.td_target(b, &eps_next);
+        let y = self.td_target_with_alpha(b, &eps_next, alpha);
         let CriticStep {
             loss,
             q_mean,
@@ -161,10 +166,11 @@ impl Sac {
             td_errors,
         } = critic_step(&mut self.critic, b, &y, &self.c)?;
 
-        // Eq. 11 with the updated critics.
+        // Eq. 11 with the updated critics, minimised in θ only: the critics run on their
+        // frozen views, so the backward pass computes ∂Q/∂a but no critic weight gradient.
         let now = self.sample_with(&b.obs, &eps_now);
         let q = critics(
-            &self.critic.net,
+            self.critic.net.frozen(),
             &b.obs,
             &now.action,
             self.c.cfg.fused_critics,

@@ -84,7 +84,7 @@ impl Td3 {
         let next_action =
             (mlp_forward(self.target_actor.params(), &b.next_obs).tanh() + eps).clamp(-1.0, 1.0);
         let q_next = critics(
-            &self.target_critic,
+            self.target_critic.params(),
             &b.next_obs,
             &next_action,
             self.c.cfg.fused_critics,
@@ -113,10 +113,16 @@ impl Td3 {
         scalars.extend(grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
 
         if self.c.updates % self.c.cfg.td3.policy_delay == 0 {
-            // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, π(s)) in θ only.
+            // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, π(s)) in θ only (critics through their
+            // frozen views: ∂Q/∂a flows, no critic weight gradient is computed).
             let action = mlp_forward(self.actor.net.params(), &b.obs).tanh();
-            let q =
-                critics(&self.critic.net, &b.obs, &action, self.c.cfg.fused_critics).amin(0, false);
+            let q = critics(
+                self.critic.net.frozen(),
+                &b.obs,
+                &action,
+                self.c.cfg.fused_critics,
+            )
+            .amin(0, false);
             let actor_loss = -q.mean(None);
             let value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
             let norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;
