@@ -224,6 +224,9 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         ReplayTarget::Shm { prefix, domain } => {
             let mut shm = ShmConfig { prefix: prefix.clone(), domain: domain.clone(), ..ShmConfig::default() };
             shm.max_in_flight = cfg.max_in_flight;
+            // Short waits while the window is full, so a stop request is seen within 0.5 s
+            // even while the replay's rate limiter holds inserts back.
+            shm.send_timeout_ms = 500;
             match ShmSink::connect(shm, actor_id, &stop) {
                 Ok(s) => Sink::Shm(s),
                 Err(_) => return Ok(ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() }),

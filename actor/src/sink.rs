@@ -180,53 +180,74 @@ impl ShmSink {
     fn send(&mut self, batch: TransitionBatch, stop: &AtomicBool) -> Result<(), Stopped> {
         self.stats.batches += 1;
         self.stats.rows += u64::from(batch.num_rows);
+        // The one refusal that retrying cannot fix, checked before anything is sent; every
+        // other refusal below is a connection state (closed, another writer still holds the
+        // actor id, backpressure) and is retried.
+        let len = batch.encoded_len_f32le();
+        if len > self.cfg.max_payload_bytes {
+            self.stats.rejected += 1;
+            tracing::error!(sequence = batch.sequence, bytes = len, limit = self.cfg.max_payload_bytes, "batch larger than the shared-memory limit; dropped (send smaller batches)");
+            return Ok(());
+        }
+        let mut backoff = BACKOFF_START;
         loop {
             let w = self.ensure_connected(stop)?;
             let sent = w.send(&batch);
             let acks = w.poll_acks();
-            match (sent, acks) {
-                (Ok(()), Ok(acks)) => {
-                    self.count(acks);
-                    return Ok(());
-                }
-                (Ok(()), Err(e)) => {
-                    // Taken; the connection broke afterwards: resend on a new one.
+            match acks {
+                Ok(a) => self.count(a),
+                Err(e) if sent.is_ok() => {
+                    // Taken; the connection broke afterwards: the window is resent on a new one.
                     self.note_error(e.to_string());
                     self.reconnect(stop)?;
                     return Ok(());
                 }
-                (Err(ReplayError::DeadlineExceeded { .. }), acks) => {
+                Err(_) => {}
+            }
+            match sent {
+                Ok(()) => return Ok(()),
+                Err(ReplayError::DeadlineExceeded { .. }) => {
                     // Backpressure: the replay holds inserts back (rate limiter). Try again.
-                    if let Ok(a) = acks {
-                        self.count(a);
+                }
+                Err(e) => {
+                    // Not taken: the connection is closed or another writer still holds the
+                    // actor id (a predecessor's connection not yet reaped). Reconnect later.
+                    self.note_error(e.to_string());
+                    sleep_unless_stopped(backoff, stop);
+                    backoff = (backoff * 2).min(BACKOFF_MAX);
+                    if !stop.load(Ordering::Relaxed) {
+                        self.reconnect(stop)?;
                     }
-                    if stop.load(Ordering::Relaxed) {
-                        return Err(Stopped("waiting for the replay to take a batch".into()));
-                    }
                 }
-                (Err(ReplayError::Closed(_)), _) | (Err(ReplayError::BadRequest(_)), Err(_)) => {
-                    self.reconnect(stop)?;
-                }
-                (Err(e), _) => {
-                    // Not taken and retrying cannot help (e.g. larger than the shm limit).
-                    self.stats.rejected += 1;
-                    tracing::error!(error = %e, sequence = batch.sequence, "batch not deliverable over shared memory; dropped");
-                    return Ok(());
-                }
+            }
+            if stop.load(Ordering::Relaxed) {
+                return Err(Stopped("waiting for the replay to take a batch".into()));
             }
         }
     }
 
     fn flush(&mut self, deadline: Instant) -> bool {
-        let Some(w) = self.writer.as_mut() else { return true };
-        match w.wait_acks(deadline) {
-            Ok(acks) => {
-                self.count(acks);
-                true
-            }
-            Err(e) => {
-                self.note_error(e.to_string());
-                false
+        loop {
+            let Some(w) = self.writer.as_mut() else { return true };
+            match w.wait_acks(deadline) {
+                Ok(acks) => {
+                    self.count(acks);
+                    return true;
+                }
+                Err(e) => {
+                    self.note_error(e.to_string());
+                    if Instant::now() >= deadline {
+                        return false;
+                    }
+                    // The replay went away (or is restarting): resend the window on a new
+                    // connection while the deadline allows.
+                    std::thread::sleep(Duration::from_millis(100));
+                    if let Some(w) = self.writer.as_mut()
+                        && w.reconnect().is_ok()
+                    {
+                        self.stats.reconnects += 1;
+                    }
+                }
             }
         }
     }
@@ -252,12 +273,16 @@ pub struct GrpcSink {
     max_in_flight: usize,
     stream: Option<Stream>,
     stats: SinkStats,
+    /// Wait before the next connection attempt; reset only by an ack, so a stream the server
+    /// accepts and then refuses (ABORTED: the actor id's previous stream is still open) does
+    /// not make a tight reconnect loop.
+    backoff: Duration,
 }
 
 impl GrpcSink {
     /// A sink that connects on first use; at most `max_in_flight` batches unacknowledged.
     pub fn new(rt: Handle, endpoint: GrpcEndpoint, max_in_flight: usize) -> GrpcSink {
-        GrpcSink { rt, endpoint, window: VecDeque::new(), max_in_flight: max_in_flight.max(1), stream: None, stats: SinkStats::default() }
+        GrpcSink { rt, endpoint, window: VecDeque::new(), max_in_flight: max_in_flight.max(1), stream: None, stats: SinkStats::default(), backoff: Duration::ZERO }
     }
 
     async fn open(endpoint: &GrpcEndpoint, window: &VecDeque<Arc<TransitionBatch>>, depth: usize) -> Result<Stream, NetError> {
@@ -287,6 +312,7 @@ impl GrpcSink {
         match self.window.front() {
             Some(b) if b.sequence == ack.sequence => {
                 self.window.pop_front();
+                self.backoff = Duration::ZERO;
                 self.stats.acked += 1;
                 self.stats.duplicates += u64::from(ack.duplicate);
                 Ok(())
@@ -300,24 +326,23 @@ impl GrpcSink {
 
     /// Opens a stream if there is none (resending the window), with backoff until `stop`.
     fn ensure_stream(&mut self, stop: &AtomicBool) -> Result<(), Stopped> {
-        let mut backoff = BACKOFF_START;
         while self.stream.is_none() {
-            let r = self.rt.block_on(Self::open(&self.endpoint, &self.window, self.max_in_flight));
-            match r {
+            if !self.backoff.is_zero() {
+                sleep_unless_stopped(self.backoff, stop);
+            }
+            self.backoff = (self.backoff * 2).clamp(BACKOFF_START, BACKOFF_MAX);
+            if stop.load(Ordering::Relaxed) {
+                return Err(Stopped("connecting to the replay over gRPC".into()));
+            }
+            match self.rt.block_on(Self::open(&self.endpoint, &self.window, self.max_in_flight)) {
                 Ok(s) => {
                     if self.stats.last_error.is_some() {
                         self.stats.reconnects += 1;
                     }
                     self.stream = Some(s);
-                    return Ok(());
                 }
                 Err(e) => self.note_error(&e),
             }
-            if stop.load(Ordering::Relaxed) {
-                return Err(Stopped("connecting to the replay over gRPC".into()));
-            }
-            sleep_unless_stopped(backoff, stop);
-            backoff = (backoff * 2).min(BACKOFF_MAX);
         }
         Ok(())
     }

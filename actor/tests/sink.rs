@@ -26,11 +26,12 @@ fn table() -> Arc<Table> {
     Arc::new(Table::new(cfg, 1).unwrap())
 }
 
-/// Serves `table` on `addr` until the returned sender fires.
-fn serve(rt: &tokio::runtime::Runtime, table: Arc<Table>, addr: std::net::SocketAddr) -> tokio::sync::oneshot::Sender<()> {
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+/// Serves `table` on `addr` on a runtime of its own; dropping the runtime is the replay
+/// process dying: every connection is cut at once.
+fn serve(table: Arc<Table>, addr: std::net::SocketAddr) -> tokio::runtime::Runtime {
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
     let listener = rt.block_on(async {
-        // The old server's socket may linger for a moment.
+        // The dead server's port may take a moment to be free again.
         let end = Instant::now() + Duration::from_secs(10);
         loop {
             match tokio::net::TcpListener::bind(addr).await {
@@ -39,39 +40,47 @@ fn serve(rt: &tokio::runtime::Runtime, table: Arc<Table>, addr: std::net::Socket
                     let _ = e;
                     tokio::time::sleep(Duration::from_millis(50)).await;
                 }
-                Err(e) => panic!("rebind {addr}: {e}"),
+                Err(e) => panic!("bind {addr}: {e}"),
             }
         }
     });
     rt.spawn(async move {
-        let _ = mapless_replay::server::run(listener, table, async move {
-            let _ = rx.await;
-        })
-        .await;
+        let _ = mapless_replay::server::run(listener, table, std::future::pending()).await;
     });
-    tx
+    rt
 }
 
 #[test]
 fn grpc_sink_delivers_every_batch_exactly_once_across_a_replay_restart() {
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
     let addr = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap();
     let t = table();
-    let stop_server = serve(&rt, Arc::clone(&t), addr);
+    let server = serve(Arc::clone(&t), addr);
     let stop = AtomicBool::new(false);
     let mut sink = Sink::Grpc(GrpcSink::new(rt.handle().clone(), GrpcEndpoint::new(format!("http://{addr}")), 4));
 
     for seq in 1..=30 {
         sink.send(batch("actor-test", seq, 10), &stop).unwrap();
     }
-    // The replay goes away with batches in flight, and comes back on the same address.
-    let _ = stop_server.send(());
-    std::thread::sleep(Duration::from_millis(300));
-    let _restarted = serve(&rt, Arc::clone(&t), addr);
+    // The replay dies with batches in flight, and comes back on the same address.
+    server.shutdown_background();
+    // Gone: nothing accepts on the address any more (the dropped runtime closed it).
+    let end = Instant::now() + Duration::from_secs(10);
+    while std::net::TcpStream::connect(addr).is_ok() {
+        assert!(Instant::now() < end, "the dead replay still accepts connections");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Batches sent now find the connection dead and the replay away; it comes back 0.5 s later.
+    let t2 = Arc::clone(&t);
+    let restarter = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(500));
+        serve(t2, addr)
+    });
     for seq in 31..=60 {
         sink.send(batch("actor-test", seq, 10), &stop).unwrap();
     }
     assert!(sink.flush(Instant::now() + Duration::from_secs(20)), "every batch acknowledged: {:?}", sink.stats());
+    let _restarted = restarter.join().unwrap();
 
     let s = sink.stats();
     assert_eq!((s.batches, s.rows, s.acked, s.rejected), (60, 600, 60, 0), "{s:?}");

@@ -123,6 +123,14 @@ fn write_policy(driver: &Driver, path: &Option<PathBuf>) {
     }
 }
 
+/// Writes `version` to `path` atomically (temp file + rename).
+fn write_version_file(path: &Path, version: u64) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, format!("{version}\n"))?;
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
+
 fn has_checkpoint(dir: &Path) -> bool {
     checkpoint::resolve(dir).is_ok()
 }
@@ -162,6 +170,12 @@ pub fn run(config_path: &Path) -> Result<()> {
         let agent = Agent::new(&cfg.learner, cfg.obs_dim, cfg.act_dim)?;
         Driver::new(agent, source, publisher.clone(), cfg.driver.clone(), 0)?
     };
+    // The newest version ever published (written every second below), which may be above the
+    // checkpoint's after a crash.
+    let published_file = cfg.checkpoint_dir.join("PUBLISHED");
+    if let Some(v) = std::fs::read_to_string(&published_file).ok().and_then(|t| t.trim().parse::<u64>().ok()) {
+        driver.continue_versions_from(v);
+    }
     driver = driver.with_checkpoints(&cfg.checkpoint_dir);
     if let Some(tb) = &cfg.tensorboard_dir {
         driver = driver.with_tensorboard(tb)?;
@@ -200,6 +214,7 @@ pub fn run(config_path: &Path) -> Result<()> {
 
     let mut last = (Instant::now(), driver.agent().updates());
     let mut last_policy_write = Instant::now();
+    let mut last_recorded_version = 0;
     while !stop.load(Ordering::Relaxed) {
         driver.try_step(Duration::from_millis(200))?;
         if last.0.elapsed() >= Duration::from_secs(1) {
@@ -214,6 +229,11 @@ pub fn run(config_path: &Path) -> Result<()> {
                 reconnects: s.reconnects,
             };
             println!("{}", serde_json::to_string(&status)?);
+            if status.weights_version != last_recorded_version {
+                std::fs::create_dir_all(&cfg.checkpoint_dir)?;
+                write_version_file(&published_file, status.weights_version)?;
+                last_recorded_version = status.weights_version;
+            }
             gauges.updates.store(status.updates, Ordering::Relaxed);
             gauges.updates_per_s_milli.store((status.updates_per_s * 1000.0) as u64, Ordering::Relaxed);
             gauges.weights_version.store(status.weights_version, Ordering::Relaxed);

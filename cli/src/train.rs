@@ -314,6 +314,13 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
             (doc, args.run.clone().unwrap_or_else(|| PathBuf::from("runs").join(name)), false)
         }
     };
+    // Sections a preset leaves out take this command's defaults in full, so that `--set
+    // replay.capacity=…` changes one field of them instead of replacing them.
+    if let Some(m) = doc.as_mapping_mut() {
+        for (key, value) in [("replay", serde_yaml::to_value(default_table())?), ("driver", serde_yaml::to_value(default_driver())?)] {
+            m.entry(serde_yaml::Value::String(key.into())).or_insert(value);
+        }
+    }
     if let Some(n) = args.actors {
         set_path(&mut doc, "actors.count", &n.to_string())?;
     }
@@ -400,6 +407,18 @@ pub fn read_episodes(path: &Path) -> (Vec<EpisodeRow>, usize) {
     (rows, bad)
 }
 
+/// Cuts a last line that a crash left without its newline, so appended rows start clean.
+fn truncate_torn_line(path: &Path) -> Result<()> {
+    let Ok(bytes) = fs::read(path) else { return Ok(()) };
+    if bytes.is_empty() || bytes.ends_with(b"\n") {
+        return Ok(());
+    }
+    let keep = bytes.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+    let f = fs::OpenOptions::new().write(true).open(path)?;
+    f.set_len(keep as u64)?;
+    Ok(())
+}
+
 /// Trailing mean of the last `window` values (fewer at the start).
 fn trailing_mean(values: impl DoubleEndedIterator<Item = f64>, window: usize) -> f64 {
     let (mut s, mut n) = (0.0, 0usize);
@@ -427,18 +446,31 @@ pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria) -> bool {
 // Children
 // ---------------------------------------------------------------------------------------------
 
-/// A supervised child process.
+/// A supervised child process. Dropping it stops the process (so an error in the supervisor
+/// never leaves a cluster behind).
 struct Proc {
     role: String,
     cmd: Vec<String>,
     child: Option<Child>,
+    /// Forwards the child's stdout lines; ends at the child's exit.
+    reader: Option<std::thread::JoinHandle<()>>,
     restarts: u32,
+    /// Restarts in a row of a child that died within 10 s of starting, and when it may start again.
+    quick_failures: u32,
+    not_before: Option<Instant>,
+    started_at: Instant,
     log: PathBuf,
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.stop(Duration::from_secs(10));
+    }
 }
 
 impl Proc {
     fn spawn(role: &str, cmd: Vec<String>, log: PathBuf, on_line: Option<std_mpsc::Sender<(String, String)>>) -> Result<Proc> {
-        let mut p = Proc { role: role.to_owned(), cmd, child: None, restarts: 0, log };
+        let mut p = Proc { role: role.to_owned(), cmd, child: None, reader: None, restarts: 0, quick_failures: 0, not_before: None, started_at: Instant::now(), log };
         p.start(on_line)?;
         Ok(p)
     }
@@ -447,17 +479,21 @@ impl Proc {
         let log = fs::OpenOptions::new().create(true).append(true).open(&self.log).with_context(|| format!("opening {}", self.log.display()))?;
         let mut c = Command::new(&self.cmd[0]);
         c.args(&self.cmd[1..]).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(log);
+        // Its own process group: a Ctrl-C at the terminal reaches the supervisor only, which
+        // then stops the children in order (actors, learner, replay).
+        std::os::unix::process::CommandExt::process_group(&mut c, 0);
         let mut child = c.spawn().with_context(|| format!("starting {} ({})", self.role, self.cmd[0]))?;
         let out = child.stdout.take().expect("piped stdout");
         let role = self.role.clone();
-        std::thread::spawn(move || {
+        self.reader = Some(std::thread::spawn(move || {
             for line in BufReader::new(out).lines().map_while(std::result::Result::ok) {
                 if let Some(tx) = &on_line {
                     let _ = tx.send((role.clone(), line));
                 }
             }
-        });
+        }));
         self.child = Some(child);
+        self.started_at = Instant::now();
         Ok(())
     }
 
@@ -489,6 +525,36 @@ impl Proc {
             }
         }
         self.child = None;
+        // Every line it printed has been forwarded once its stdout closed.
+        if let Some(r) = self.reader.take() {
+            let _ = r.join();
+        }
+    }
+
+    /// After an exit: restart at once if it had run for a while, otherwise with a backoff
+    /// (1 s doubling to 30 s). Fails after 10 quick failures in a row.
+    fn restart_when_due(&mut self, on_line: Option<std_mpsc::Sender<(String, String)>>) -> Result<bool> {
+        if let Some(t) = self.not_before {
+            if Instant::now() < t {
+                return Ok(false);
+            }
+            self.not_before = None;
+            self.start(on_line)?;
+            return Ok(true);
+        }
+        if self.started_at.elapsed() < Duration::from_secs(10) {
+            self.quick_failures += 1;
+            if self.quick_failures >= 10 {
+                bail!("{} failed within 10 s of starting 10 times in a row; see {}", self.role, self.log.display());
+            }
+            let wait = Duration::from_secs(1 << (self.quick_failures - 1).min(5)).min(Duration::from_secs(30));
+            self.not_before = Some(Instant::now() + wait);
+            tracing::warn!(role = %self.role, retry_in_s = wait.as_secs(), "exited soon after starting; restarting after a pause");
+            return Ok(false);
+        }
+        self.quick_failures = 0;
+        self.start(on_line)?;
+        Ok(true)
     }
 }
 
@@ -726,6 +792,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         tracing::warn!(bad, "skipped unreadable lines of episodes.csv");
     }
     let offset_s = rows.last().map_or(0.0, |r| r.wall_s);
+    truncate_torn_line(&csv_path)?;
     let mut csv = fs::OpenOptions::new().create(true).append(true).open(&csv_path)?;
     if rows.is_empty() && bad == 0 {
         writeln!(csv, "{CSV_HEADER}")?;
@@ -769,7 +836,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
                 continue;
             }
             let row = EpisodeRow {
-                episode: rows.len() as u64 + 1,
+                episode: rows.last().map_or(1, |r| r.episode + 1),
                 wall_s: offset_s + started.elapsed().as_secs_f64(),
                 actor_id: e.actor_id,
                 policy_version: e.policy_version,
@@ -787,16 +854,16 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         let ls = learner_status.lock().unwrap_or_else(|e| e.into_inner()).clone();
         // Replay info, once a second.
         if last_progress.elapsed() >= Duration::from_secs(1) {
+            // Bounded: the supervisor's loop must never hang on the replay.
             let info = rt.block_on(async {
-                if replay_client.is_none() {
-                    replay_client = ReplayServiceClient::connect(format!("http://{replay_addr}")).await.ok();
-                }
-                let c = replay_client.as_mut()?;
-                let r = tokio::time::timeout(Duration::from_secs(1), c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32, ..Default::default() })).await;
-                match r {
-                    Ok(Ok(r)) => Some(r.into_inner()),
-                    _ => None,
-                }
+                let fetch = async {
+                    if replay_client.is_none() {
+                        replay_client = ReplayServiceClient::connect(format!("http://{replay_addr}")).await.ok();
+                    }
+                    let c = replay_client.as_mut()?;
+                    c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32, ..Default::default() }).await.ok().map(tonic::Response::into_inner)
+                };
+                tokio::time::timeout(Duration::from_secs(1), fetch).await.ok().flatten()
             });
             match info {
                 Some(i) => {
@@ -866,15 +933,16 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         // Supervision.
         let mut restarted = false;
         for (i, a) in actors.iter_mut().enumerate() {
-            if let Some(st) = a.exited() {
+            if a.not_before.is_some() {
+                restarted |= a.restart_when_due(Some(line_tx.clone()))?;
+            } else if let Some(st) = a.exited() {
                 restarts += 1;
                 a.restarts += 1;
                 if tty {
                     eprintln!();
                 }
                 tracing::warn!(actor = i, status = %st, "actor exited; restarting it");
-                a.start(Some(line_tx.clone()))?;
-                restarted = true;
+                restarted |= a.restart_when_due(Some(line_tx.clone()))?;
             }
         }
         if restarted {
@@ -919,13 +987,14 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         }
     }
     for a in &mut actors {
-        a.stop(Duration::from_secs(15));
+        // An actor sends its last batch and waits up to 10 s for the acknowledgements.
+        a.stop(Duration::from_secs(30));
     }
     learner.stop(Duration::from_secs(60));
     // Episodes that arrived while the actors stopped.
     while let Ok(e) = ep_rx.try_recv() {
         if !e.evaluation {
-            let row = EpisodeRow { episode: rows.len() as u64 + 1, wall_s: offset_s + started.elapsed().as_secs_f64(), actor_id: e.actor_id, policy_version: e.policy_version, episode_return: e.episode_return, steps: e.steps, terminal: e.terminal, eqs: e.eqs, ees: e.ees, distance_m: e.distance_m, shaded_time_s: e.shaded_time_s };
+            let row = EpisodeRow { episode: rows.last().map_or(1, |r| r.episode + 1), wall_s: offset_s + started.elapsed().as_secs_f64(), actor_id: e.actor_id, policy_version: e.policy_version, episode_return: e.episode_return, steps: e.steps, terminal: e.terminal, eqs: e.eqs, ees: e.ees, distance_m: e.distance_m, shaded_time_s: e.shaded_time_s };
             writeln!(csv, "{}", row.csv())?;
             rows.push(row);
         }

@@ -126,6 +126,13 @@ impl Driver {
         self.version
     }
 
+    /// Continues the version count from at least `version`: a learner restarted after a crash
+    /// may have published more versions than its newest checkpoint records, and subscribers
+    /// wait for a version above the last they saw (they must never see a number reused).
+    pub fn continue_versions_from(&mut self, version: u64) {
+        self.version = self.version.max(version);
+    }
+
     /// The replay source (for its counters).
     pub fn source(&self) -> &dyn ReplaySource {
         self.source.as_ref()
