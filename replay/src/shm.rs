@@ -500,6 +500,9 @@ fn janitor(node: Node<ServerSvc>, scan: Duration, stop: &AtomicBool, counters: &
 }
 
 /// A request whose insert is waiting for the rate limiter; retried without decoding again.
+/// Requests taken from the port before any is handled (more than writers × window never wait).
+const MAX_QUEUED: usize = 4096;
+
 struct Stalled {
     request: InsertRequest,
     batch: TransitionBatch,
@@ -510,6 +513,11 @@ struct Stalled {
 /// The ingest thread's state. Field order is drop order: requests before ports before node.
 struct Ingest {
     stalled: Option<Stalled>,
+    /// Requests received and not yet handled, in arrival order. Taking every waiting request
+    /// before handling any serves writers in turn: `receive` alone favours the first client
+    /// port with a request, so a writer that refills its window at once could starve others
+    /// while the rate limiter lets one batch through at a time.
+    queued: VecDeque<InsertRequest>,
     /// The payload buffer of the last batch, reused for the next one once nothing borrows it
     /// (no allocation and no page faults per batch).
     spare: BytesMut,
@@ -542,7 +550,7 @@ impl Ingest {
             ServerCreateError::ExceedsMaxSupportedServers => closed(&svc, "another live ShmIngest already serves this service"),
             e => closed(&svc, format!("cannot create the server port: {e:?}")),
         })?;
-        Ok(Ingest { stalled: None, spare: BytesMut::new(), server, service, node, table, cfg, counters, owners: HashMap::new() })
+        Ok(Ingest { stalled: None, queued: VecDeque::new(), spare: BytesMut::new(), server, service, node, table, cfg, counters, owners: HashMap::new() })
     }
 
     fn run(mut self, stop: &AtomicBool) {
@@ -565,27 +573,44 @@ impl Ingest {
                     continue; // still blocked; insert() already waited insert_wait_ms
                 }
             }
-            match self.server.receive() {
-                Ok(Some(request)) => {
+            if self.queued.is_empty() {
+                loop {
+                    match self.server.receive() {
+                        Ok(Some(request)) => {
+                            self.queued.push_back(request);
+                            if self.queued.len() >= MAX_QUEUED {
+                                break;
+                            }
+                        }
+                        Ok(None) => break,
+                        Err(e) => {
+                            // Usually a writer that died half-way; cleaning dead nodes drops its
+                            // connection. Keep serving meanwhile.
+                            self.counters.receive_errors.fetch_add(1, Ordering::Relaxed);
+                            if last_receive_warning.is_none_or(|t| t.elapsed() > Duration::from_secs(5)) {
+                                tracing::warn!(error = ?e, "shm receive failed; cleaning dead nodes and retrying");
+                                last_receive_warning = Some(Instant::now());
+                            }
+                            self.cleanup_dead_nodes();
+                            break;
+                        }
+                    }
+                }
+            }
+            match self.queued.pop_front() {
+                Some(request) => {
                     idle.reset();
                     self.handle(request);
                 }
-                Ok(None) => idle.snooze(),
-                Err(e) => {
-                    // Usually a writer that died half-way; cleaning dead nodes drops its
-                    // connection. Keep serving meanwhile.
-                    self.counters.receive_errors.fetch_add(1, Ordering::Relaxed);
-                    if last_receive_warning.is_none_or(|t| t.elapsed() > Duration::from_secs(5)) {
-                        tracing::warn!(error = ?e, "shm receive failed; cleaning dead nodes and retrying");
-                        last_receive_warning = Some(Instant::now());
-                    }
-                    self.cleanup_dead_nodes();
-                    idle.snooze();
-                }
+                None => idle.snooze(),
             }
         }
         if let Some(s) = self.stalled.take() {
             respond(&s.request, WireAck::failed(s.batch.sequence, CODE_UNAVAILABLE, "ingest stopped while the batch waited for the rate limiter; resend after reconnecting"));
+        }
+        for r in self.queued.drain(..) {
+            let sequence = r.user_header().sequence;
+            respond(&r, WireAck::failed(sequence, CODE_UNAVAILABLE, "ingest stopped before handling the batch; resend after reconnecting"));
         }
         tracing::info!("shared-memory ingest stopped");
     }
