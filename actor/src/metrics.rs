@@ -38,6 +38,20 @@ pub async fn serve(listener: TcpListener, render: Render, mut stop: watch::Recei
     }
 }
 
+/// Binds `addr` (port 0: any free port), logs the address, and serves `render` on `rt` until
+/// `stop` turns true. Returns the bound address.
+pub fn spawn(rt: &tokio::runtime::Runtime, addr: std::net::SocketAddr, render: Render, stop: watch::Receiver<bool>) -> std::io::Result<std::net::SocketAddr> {
+    let listener = rt.block_on(TcpListener::bind(addr))?;
+    let bound = listener.local_addr()?;
+    tracing::info!(addr = %bound, "metrics on /metrics");
+    rt.spawn(async move {
+        if let Err(e) = serve(listener, render, stop).await {
+            tracing::warn!(error = %e, "metrics endpoint stopped");
+        }
+    });
+    Ok(bound)
+}
+
 /// One metric in the text format: `# HELP`, `# TYPE` and the sample.
 pub fn line(out: &mut String, name: &str, kind: &str, help: &str, value: f64) {
     use std::fmt::Write as _;

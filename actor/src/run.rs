@@ -238,16 +238,8 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let mut report = ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() };
     let gauges = Arc::new(Gauges::default());
     if let Some(addr) = cfg.metrics_listen {
-        let listener = rt.block_on(tokio::net::TcpListener::bind(addr))?;
-        tracing::info!(addr = %listener.local_addr()?, "metrics on /metrics");
         let g = Arc::clone(&gauges);
-        let render: crate::metrics::Render = Arc::new(move || g.render());
-        let stop = stop_rx.clone();
-        rt.spawn(async move {
-            if let Err(e) = crate::metrics::serve(listener, render, stop).await {
-                tracing::warn!(error = %e, "metrics endpoint stopped");
-            }
-        });
+        crate::metrics::spawn(&rt, addr, Arc::new(move || g.render()), stop_rx.clone())?;
     }
     let mut policy: Option<Policy> = None;
     let mut noise = Noise::new(cfg.exploration.noise, n, 2);

@@ -195,16 +195,9 @@ pub fn run(config_path: &Path) -> Result<()> {
     }));
     let gauges = Arc::new(Gauges::default());
     if let Some(m) = cfg.metrics_listen {
-        let listener = rt.block_on(tokio::net::TcpListener::bind(m)).with_context(|| format!("binding /metrics on {m}"))?;
-        tracing::info!(addr = %listener.local_addr()?, "metrics on /metrics");
         let g = Arc::clone(&gauges);
-        let render: mapless_actor::metrics::Render = Arc::new(move || g.render());
-        let stop = stop_rx.clone();
-        rt.spawn(async move {
-            if let Err(e) = mapless_actor::metrics::serve(listener, render, stop).await {
-                tracing::warn!(error = %e, "metrics endpoint stopped");
-            }
-        });
+        let bound = mapless_actor::metrics::spawn(&rt, m, Arc::new(move || g.render()), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
+        println!("metrics on http://{bound}/metrics");
     }
     println!("weights on {addr}");
     // Publish now: actors act with the initial (or, resumed, the newest) policy while the

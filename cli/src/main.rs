@@ -220,20 +220,20 @@ fn main() {
     let cli = Cli::parse();
     // Benchmarks run services in-process; their per-stream info lines would drown the figures.
     let quiet = matches!(cli.cmd, Cmd::Bench { .. });
-    init_logging(cli.log_json, if quiet { "warn" } else { "info" });
+    mapless_replay::logging::init(cli.log_json, if quiet { "warn" } else { "info" });
+    let role = match &cli.cmd {
+        Cmd::Learner { .. } => "learner",
+        Cmd::Train(_) => "supervisor",
+        Cmd::Eval(_) => "eval",
+        _ => "cli",
+    };
+    mapless_replay::logging::identify(&[("role", role)]);
     if let Err(e) = run(cli) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
 }
 
-fn init_logging(json: bool, default_level: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| default_level.into());
-    // No colour codes when stderr is a file (the run folder's logs/).
-    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let b = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
-    if json { b.json().init() } else { b.init() }
-}
 
 fn run(cli: Cli) -> Result<()> {
     let log_json = cli.log_json;
@@ -245,8 +245,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Train(a) => train::train(&a, log_json),
         Cmd::Eval(a) => eval_cmd(&a),
         Cmd::Learner { config, run } => {
-            let span = tracing::info_span!("learner", run = %run, role = "learner");
-            let _e = span.enter();
+            mapless_replay::logging::identify(&[("run", &run), ("role", "learner")]);
             learner_cmd::run(&config)
         }
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),

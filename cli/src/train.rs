@@ -14,7 +14,6 @@
 //! order (actors, learner with a final checkpoint, replay), evaluates the final policy and
 //! writes `summary.json`.
 
-use std::collections::BTreeMap;
 use std::fs;
 use std::io::{BufRead, BufReader, IsTerminal, Write};
 use std::net::SocketAddr;
@@ -479,6 +478,10 @@ impl Proc {
         let log = fs::OpenOptions::new().create(true).append(true).open(&self.log).with_context(|| format!("opening {}", self.log.display()))?;
         let mut c = Command::new(&self.cmd[0]);
         c.args(&self.cmd[1..]).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(log);
+        // Children without a --run flag (the replay) take the run name for their log lines from here.
+        if let Some(run) = mapless_replay::logging::field("run") {
+            c.env("MAPLESS_RUN", run);
+        }
         // Its own process group: a Ctrl-C at the terminal reaches the supervisor only, which
         // then stops the children in order (actors, learner, replay).
         std::os::unix::process::CommandExt::process_group(&mut c, 0);
@@ -558,15 +561,23 @@ impl Proc {
     }
 }
 
-/// Waits for a line from `role` that starts with `prefix`.
-fn wait_line(rx: &std_mpsc::Receiver<(String, String)>, role: &str, prefix: &str, timeout: Duration, proc_: &mut Proc) -> Result<String> {
+/// Waits for a line from `role` that starts with `prefix`; returns every line `role` printed
+/// until then, that one last.
+fn wait_line(rx: &std_mpsc::Receiver<(String, String)>, role: &str, prefix: &str, timeout: Duration, proc_: &mut Proc) -> Result<Vec<String>> {
     let end = Instant::now() + timeout;
+    let mut said = Vec::new();
     loop {
         if let Some(st) = proc_.exited() {
             bail!("{role} exited ({st}) before it was ready; see {}", proc_.log.display());
         }
         match rx.recv_timeout(Duration::from_millis(100)) {
-            Ok((r, l)) if r == role && l.starts_with(prefix) => return Ok(l),
+            Ok((r, l)) if r == role => {
+                let done = l.starts_with(prefix);
+                said.push(l);
+                if done {
+                    return Ok(said);
+                }
+            }
             Ok(_) => {}
             Err(std_mpsc::RecvTimeoutError::Timeout) => {}
             Err(e) => bail!("{role}: {e}"),
@@ -577,10 +588,13 @@ fn wait_line(rx: &std_mpsc::Receiver<(String, String)>, role: &str, prefix: &str
     }
 }
 
-/// A free loopback port (bound and released; the child binds it a moment later).
-fn free_port() -> Result<SocketAddr> {
-    let l = std::net::TcpListener::bind("127.0.0.1:0")?;
-    Ok(l.local_addr()?)
+/// The address in the line of `said` that starts with `prefix` (`listening on ADDR`,
+/// `metrics on http://ADDR/metrics`).
+fn said_addr(said: &[String], prefix: &str) -> Result<SocketAddr> {
+    let line = said.iter().find(|l| l.starts_with(prefix)).with_context(|| format!("no `{prefix}…` line in {said:?}"))?;
+    let rest = &line[prefix.len()..];
+    let addr = rest.split(['/', ' ']).next().unwrap_or(rest);
+    addr.parse().with_context(|| format!("bad address in `{line}`"))
 }
 
 /// `mapless-replay` and `mapless-actor` live next to this executable.
@@ -670,6 +684,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     fs::create_dir_all(&logs)?;
     fs::write(run.join("config.yaml"), serde_yaml::to_string(&cfg)?)?;
     let run_name = run.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into());
+    mapless_replay::logging::identify(&[("run", &run_name), ("role", "supervisor")]);
     let run_abs = fs::canonicalize(&run)?;
 
     // Stop flag: Ctrl-C / SIGTERM.
@@ -683,29 +698,52 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         });
     }
 
-    // Ports, chosen once so that a restarted child comes back on the same address.
-    let replay_addr = free_port()?;
-    let replay_metrics = free_port()?;
-    let weights_addr = free_port()?;
-    let learner_metrics = free_port()?;
+    // Ports: each service binds port 0 and says what it got (no bind-and-release race); the
+    // configs are then rewritten with those ports so that a restarted child comes back on the
+    // same addresses.
+    let any_port = SocketAddr::from(([127, 0, 0, 1], 0));
     // One iceoryx2 domain per run folder: runs on one host stay apart, and a restarted
     // replay or actor cleans what a killed predecessor of *this* run left.
     let domain = format!("mpl{:08x}_", crc32fast::hash(run_abs.to_string_lossy().as_bytes()));
     let shm = ShmConfig { domain: domain.clone(), ..ShmConfig::for_table(&cfg.replay.name) };
 
-    let mut server = ServerConfig { listen: replay_addr, metrics_listen: Some(replay_metrics), table: cfg.replay.clone(), shm: Some(shm.clone()), seed: cfg.seed, ..ServerConfig::default() };
+    let exe = std::env::current_exe()?.to_string_lossy().into_owned();
+    let replay_bin = sibling("mapless-replay")?.to_string_lossy().into_owned();
+    let actor_bin = sibling("mapless-actor")?.to_string_lossy().into_owned();
+    let p = |x: &Path| x.to_string_lossy().into_owned();
+    let (line_tx, line_rx) = std_mpsc::channel::<(String, String)>();
+
+    eprintln!("mapless train: {} — {} ({} actors × {} vehicles); run folder {}", cfg.name, cfg.description, cfg.actors.count, cfg.actors.vehicles, run.display());
+    eprintln!("  logs: {}/  TensorBoard: tensorboard --logdir {}/tensorboard", logs.display(), run.display());
+    // `mapless --log-json train` makes every process log JSON lines.
+    let json_flag = |mut v: Vec<String>| {
+        if log_json {
+            v.push("--log-json".into());
+        }
+        v
+    };
+
+    let mut server = ServerConfig { listen: any_port, metrics_listen: Some(any_port), table: cfg.replay.clone(), shm: Some(shm.clone()), seed: cfg.seed, ..ServerConfig::default() };
     if cfg.replay_persistence {
         server.persistence.dir = Some(run_abs.join("replay"));
     }
     fs::write(run.join("replay.yaml"), serde_yaml::to_string(&server)?)?;
+    let mut replay = Proc::spawn("replay", json_flag(vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))]), logs.join("replay.log"), Some(line_tx.clone()))?;
+    let said = wait_line(&line_rx, "replay", "listening on ", Duration::from_secs(120), &mut replay)?;
+    let replay_addr = said_addr(&said, "listening on ")?;
+    let replay_metrics = said_addr(&said, "metrics on http://")?;
+    // A restarted replay comes back on the same ports.
+    server.listen = replay_addr;
+    server.metrics_listen = Some(replay_metrics);
+    fs::write(run.join("replay.yaml"), serde_yaml::to_string(&server)?)?;
 
-    let learner_cfg = LearnerServiceConfig {
+    let mut learner_cfg = LearnerServiceConfig {
         learner: LearnerConfig { seed: cfg.seed, ..cfg.learner.clone() },
         driver: cfg.driver.clone(),
         obs_dim: cfg.env.obs_dim(),
         act_dim: 2,
         replay: format!("http://{replay_addr}"),
-        weights_listen: weights_addr,
+        weights_listen: any_port,
         checkpoint_dir: run_abs.join("checkpoints"),
         tensorboard_dir: Some(run_abs.join("tensorboard")),
         policy_file: Some(run_abs.join("policy.safetensors")),
@@ -714,8 +752,20 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         tls: None,
         auth_token_file: None,
         replay_security: Default::default(),
-        metrics_listen: Some(learner_metrics),
+        metrics_listen: Some(any_port),
     };
+    fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
+    let mut learner_cmd = vec![exe];
+    if log_json {
+        learner_cmd.push("--log-json".into());
+    }
+    learner_cmd.extend(["learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()]);
+    let mut learner = Proc::spawn("learner", learner_cmd, logs.join("learner.log"), Some(line_tx.clone()))?;
+    let said = wait_line(&line_rx, "learner", "weights on ", Duration::from_secs(120), &mut learner)?;
+    let weights_addr = said_addr(&said, "weights on ")?;
+    let learner_metrics = said_addr(&said, "metrics on http://")?;
+    learner_cfg.weights_listen = weights_addr;
+    learner_cfg.metrics_listen = Some(learner_metrics);
     fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
 
     // Stats collector (in this process).
@@ -746,30 +796,6 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     };
     fs::write(run.join("actor.yaml"), serde_yaml::to_string(&actor_cfg)?)?;
 
-    let exe = std::env::current_exe()?.to_string_lossy().into_owned();
-    let replay_bin = sibling("mapless-replay")?.to_string_lossy().into_owned();
-    let actor_bin = sibling("mapless-actor")?.to_string_lossy().into_owned();
-    let p = |x: &Path| x.to_string_lossy().into_owned();
-    let (line_tx, line_rx) = std_mpsc::channel::<(String, String)>();
-
-    eprintln!("mapless train: {} — {} ({} actors × {} vehicles); run folder {}", cfg.name, cfg.description, cfg.actors.count, cfg.actors.vehicles, run.display());
-    eprintln!("  logs: {}/  TensorBoard: tensorboard --logdir {}/tensorboard", logs.display(), run.display());
-    // `mapless --log-json train` makes every process log JSON lines.
-    let json_flag = |mut v: Vec<String>| {
-        if log_json {
-            v.push("--log-json".into());
-        }
-        v
-    };
-    let mut replay = Proc::spawn("replay", json_flag(vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))]), logs.join("replay.log"), Some(line_tx.clone()))?;
-    wait_line(&line_rx, "replay", "listening on", Duration::from_secs(120), &mut replay)?;
-    let mut learner_cmd = vec![exe];
-    if log_json {
-        learner_cmd.push("--log-json".into());
-    }
-    learner_cmd.extend(["learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()]);
-    let mut learner = Proc::spawn("learner", learner_cmd, logs.join("learner.log"), Some(line_tx.clone()))?;
-    wait_line(&line_rx, "learner", "weights on", Duration::from_secs(120), &mut learner)?;
     let actor_cmd = |i: usize| json_flag(vec![actor_bin.clone(), "--config".into(), p(&run_abs.join("actor.yaml")), "--index".into(), i.to_string(), "--run".into(), run_name.clone()]);
     let mut actors: Vec<Proc> = Vec::new();
     for i in 0..cfg.actors.count {
@@ -811,15 +837,12 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let mut milestone: Option<Milestone> = None;
     let mut stopped_because = String::from("interrupted (Ctrl-C)");
     let tty = std::io::stderr().is_terminal();
-    let mut restarts = 0u32;
     let steady_from = cfg.stop.minutes.map_or(20.0, |m| (m * 20.0).min(20.0));
     let mut steady_start: Option<(Instant, u64, u64)> = None;
-    let mut lines_seen: BTreeMap<String, u64> = BTreeMap::new();
 
     loop {
         // Lines from children (the learner's status, actors' final reports).
         while let Ok((role, line)) = line_rx.try_recv() {
-            *lines_seen.entry(role.clone()).or_default() += 1;
             if role == "learner"
                 && let Ok(v) = serde_json::from_str::<serde_json::Value>(&line)
                 && v.get("event").and_then(|e| e.as_str()) == Some("status")
@@ -832,24 +855,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         }
         // Episodes.
         while let Ok(e) = ep_rx.try_recv() {
-            if e.evaluation {
-                continue;
-            }
-            let row = EpisodeRow {
-                episode: rows.last().map_or(1, |r| r.episode + 1),
-                wall_s: offset_s + started.elapsed().as_secs_f64(),
-                actor_id: e.actor_id,
-                policy_version: e.policy_version,
-                episode_return: e.episode_return,
-                steps: e.steps,
-                terminal: e.terminal,
-                eqs: e.eqs,
-                ees: e.ees,
-                distance_m: e.distance_m,
-                shaded_time_s: e.shaded_time_s,
-            };
-            writeln!(csv, "{}", row.csv())?;
-            rows.push(row);
+            record_episode(e, offset_s + started.elapsed().as_secs_f64(), &mut rows, &mut csv)?;
         }
         let ls = learner_status.lock().unwrap_or_else(|e| e.into_inner()).clone();
         // Replay info, once a second.
@@ -886,6 +892,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             let avg_s = trailing_mean(rows.iter().map(|e| f64::from(e.steps)), w);
             let el = started.elapsed().as_secs();
             let alive = actors.iter_mut().filter_map(|a| a.exited().is_none().then_some(())).count();
+            let restarts = total_restarts(&replay, &learner, &actors);
             let line = format!(
                 "[{:02}:{:02}:{:02}] ep {} | avg{} return {:.1} steps {:.0} | updates {} ({:.0}/s) | env {:.0} steps/s | replay {} | policy v{} | actors {}/{}{}",
                 el / 3600, el / 60 % 60, el % 60,
@@ -936,7 +943,6 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             if a.not_before.is_some() {
                 restarted |= a.restart_when_due(Some(line_tx.clone()))?;
             } else if let Some(st) = a.exited() {
-                restarts += 1;
                 a.restarts += 1;
                 if tty {
                     eprintln!();
@@ -949,27 +955,11 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             write_pids(&run, &replay, &learner, &actors)?;
         }
         if let Some(st) = learner.exited() {
-            if learner.restarts >= 3 {
-                eprintln!();
-                bail!("the learner exited ({st}) for the 4th time; see {}", learner.log.display());
-            }
-            eprintln!();
-            tracing::warn!(status = %st, "learner exited; restarting it from its newest checkpoint");
-            learner.restarts += 1;
-            restarts += 1;
-            learner.start(Some(line_tx.clone()))?;
+            restart_service(&mut learner, st, "from its newest checkpoint", line_tx.clone())?;
             write_pids(&run, &replay, &learner, &actors)?;
         }
         if let Some(st) = replay.exited() {
-            if replay.restarts >= 3 {
-                eprintln!();
-                bail!("the replay exited ({st}) for the 4th time; see {}", replay.log.display());
-            }
-            eprintln!();
-            tracing::warn!(status = %st, "replay exited; restarting it (it restores from its log)");
-            replay.restarts += 1;
-            restarts += 1;
-            replay.start(Some(line_tx.clone()))?;
+            restart_service(&mut replay, st, "(it restores from its log)", line_tx.clone())?;
             write_pids(&run, &replay, &learner, &actors)?;
         }
         std::thread::sleep(Duration::from_millis(100));
@@ -993,11 +983,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     learner.stop(Duration::from_secs(60));
     // Episodes that arrived while the actors stopped.
     while let Ok(e) = ep_rx.try_recv() {
-        if !e.evaluation {
-            let row = EpisodeRow { episode: rows.last().map_or(1, |r| r.episode + 1), wall_s: offset_s + started.elapsed().as_secs_f64(), actor_id: e.actor_id, policy_version: e.policy_version, episode_return: e.episode_return, steps: e.steps, terminal: e.terminal, eqs: e.eqs, ees: e.ees, distance_m: e.distance_m, shaded_time_s: e.shaded_time_s };
-            writeln!(csv, "{}", row.csv())?;
-            rows.push(row);
-        }
+        record_episode(e, offset_s + started.elapsed().as_secs_f64(), &mut rows, &mut csv)?;
     }
     replay.stop(Duration::from_secs(60));
     let _ = collector_stop_tx.send(true);
@@ -1065,12 +1051,52 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     Ok(())
 }
 
+/// Appends a training episode (numbered after the last one) to `rows` and `episodes.csv`;
+/// evaluation records are not part of the training curve.
+fn record_episode(e: EpisodeStats, wall_s: f64, rows: &mut Vec<EpisodeRow>, csv: &mut fs::File) -> Result<()> {
+    if e.evaluation {
+        return Ok(());
+    }
+    let row = EpisodeRow {
+        episode: rows.last().map_or(1, |r| r.episode + 1),
+        wall_s,
+        actor_id: e.actor_id,
+        policy_version: e.policy_version,
+        episode_return: e.episode_return,
+        steps: e.steps,
+        terminal: e.terminal,
+        eqs: e.eqs,
+        ees: e.ees,
+        distance_m: e.distance_m,
+        shaded_time_s: e.shaded_time_s,
+    };
+    writeln!(csv, "{}", row.csv())?;
+    rows.push(row);
+    Ok(())
+}
+
+/// Restarts a service child (learner, replay) that exited, at most 3 times.
+fn restart_service(p: &mut Proc, st: std::process::ExitStatus, how: &str, on_line: std_mpsc::Sender<(String, String)>) -> Result<()> {
+    eprintln!();
+    if p.restarts >= 3 {
+        bail!("the {} exited ({st}) for the 4th time; see {}", p.role, p.log.display());
+    }
+    tracing::warn!(status = %st, "{} exited; restarting it {how}", p.role);
+    p.restarts += 1;
+    p.start(Some(on_line))
+}
+
+/// Restarts of all children so far.
+fn total_restarts(replay: &Proc, learner: &Proc, actors: &[Proc]) -> u32 {
+    actors.iter().map(|a| a.restarts).sum::<u32>() + learner.restarts + replay.restarts
+}
+
 /// `pids.json`: the processes of the run now (tests and operators use it).
 fn write_pids(run: &Path, replay: &Proc, learner: &Proc, actors: &[Proc]) -> Result<()> {
     let v = serde_json::json!({
         "supervisor": std::process::id(), "replay": replay.pid(), "learner": learner.pid(),
         "actors": actors.iter().map(Proc::pid).collect::<Vec<_>>(),
-        "restarts": actors.iter().map(|a| a.restarts).sum::<u32>() + learner.restarts + replay.restarts,
+        "restarts": total_restarts(replay, learner, actors),
     });
     let tmp = run.join("pids.json.tmp");
     fs::write(&tmp, serde_json::to_string(&v)?)?;

@@ -35,10 +35,9 @@ const TINY: &[&str] = &[
     "learner.batch_size=16",
     "replay.capacity=20000",
     "replay.rate_limiter.min_size_to_sample=100",
-    // No ratio yet: with inserts blocked by the limiter, the shared-memory ingest used to serve
-    // one writer and starve another; fixed in replay/src/shm.rs, to be re-enabled here once a
-    // run of this test with the ratio has confirmed it (docs/cluster.md).
-    "replay.rate_limiter.samples_per_insert=null",
+    // With a ratio, as the presets run: while the limiter blocks inserts every writer must
+    // still get through (the shm ingest once starved all but one; replay/src/shm.rs).
+    "replay.rate_limiter.samples_per_insert=4",
     "replay.rate_limiter.error_buffer=5000",
     "actors.warmup_steps=50",
     "actors.batch_rows=16",

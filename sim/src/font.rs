@@ -56,3 +56,30 @@ pub fn glyph(c: char) -> [u8; 7] {
         _ => [0x1F, 0x11, 0x11, 0x11, 0x11, 0x11, 0x1F],
     }
 }
+
+/// Draws glyphs left to right from pixel (x, y) (top-left of the first), each font pixel a
+/// `scale`×`scale` square in `paint`, 6 font pixels apart; pixels off the picture are skipped.
+/// `paint` should not anti-alias (font pixels are squares; an anti-aliased fill of an
+/// off-picture rectangle trips tiny-skia).
+pub(crate) fn draw(pixmap: &mut tiny_skia::Pixmap, x: f32, y: f32, scale: f32, glyphs: impl IntoIterator<Item = [u8; 7]>, paint: &tiny_skia::Paint) {
+    let (w, h) = (pixmap.width() as f32, pixmap.height() as f32);
+    for (i, g) in glyphs.into_iter().enumerate() {
+        let gx = x + i as f32 * 6.0 * scale;
+        if gx > w {
+            break;
+        }
+        for (row, bits) in g.iter().enumerate() {
+            for col in 0..5 {
+                if bits & (0x10 >> col) != 0 {
+                    let (rx, ry) = (gx + col as f32 * scale, y + row as f32 * scale);
+                    if rx < 0.0 || ry < 0.0 || rx + scale > w || ry + scale > h {
+                        continue;
+                    }
+                    if let Some(r) = tiny_skia::Rect::from_xywh(rx, ry, scale, scale) {
+                        pixmap.fill_rect(r, paint, tiny_skia::Transform::identity(), None);
+                    }
+                }
+            }
+        }
+    }
+}

@@ -317,28 +317,7 @@ impl Chart {
     fn text(&mut self, x: f32, y: f32, s: &str, rgb: [u8; 3]) {
         let mut p = paint(rgb, 255);
         p.anti_alias = false;
-        let (w, h) = (self.pixmap.width() as f32, self.pixmap.height() as f32);
-        let scale = FONT_SCALE;
-        for (i, ch) in normalize(s).chars().enumerate() {
-            let g = glyph(ch);
-            let gx = x + i as f32 * 6.0 * scale;
-            if gx > w {
-                break;
-            }
-            for (row, bits) in g.iter().enumerate() {
-                for col in 0..5 {
-                    if bits & (0x10 >> col) != 0 {
-                        let (rx, ry) = (gx + col as f32 * scale, y + row as f32 * scale);
-                        if rx < 0.0 || ry < 0.0 || rx + scale > w || ry + scale > h {
-                            continue;
-                        }
-                        if let Some(r) = Rect::from_xywh(rx, ry, scale, scale) {
-                            self.pixmap.fill_rect(r, &p, Transform::identity(), None);
-                        }
-                    }
-                }
-            }
-        }
+        font::draw(&mut self.pixmap, x, y, FONT_SCALE, normalize(s).chars().map(glyph), &p);
     }
 
     fn segment(&mut self, a: (f32, f32), b: (f32, f32), width: f32, p: &Paint, dash: Option<StrokeDash>, mask: Option<&Mask>) {

@@ -157,24 +157,7 @@ impl Canvas {
     pub fn text(&mut self, x: f32, y: f32, scale: f32, s: &str, rgb: [u8; 3]) {
         let mut p = paint(rgb[0], rgb[1], rgb[2], 255);
         p.anti_alias = false; // font pixels are squares; AA fill of off-canvas rects trips tiny-skia
-        let (w, h) = (self.pixmap.width() as f32, self.pixmap.height() as f32);
-        for (i, ch) in s.chars().enumerate() {
-            let g = font::glyph(ch);
-            let gx = x + i as f32 * 6.0 * scale;
-            for (row, bits) in g.iter().enumerate() {
-                for col in 0..5 {
-                    if bits & (0x10 >> col) != 0 {
-                        let (rx, ry) = (gx + col as f32 * scale, y + row as f32 * scale);
-                        if rx < 0.0 || ry < 0.0 || rx + scale > w || ry + scale > h {
-                            continue;
-                        }
-                        if let Some(r) = Rect::from_xywh(rx, ry, scale, scale) {
-                            self.pixmap.fill_rect(r, &p, Transform::identity(), None);
-                        }
-                    }
-                }
-            }
-        }
+        font::draw(&mut self.pixmap, x, y, scale, s.chars().map(font::glyph), &p);
     }
 
     fn scale_bar(&mut self, map: &Map) {

@@ -39,17 +39,9 @@ struct Cli {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,iceoryx2=warn".into());
-    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let b = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
-    if cli.log_json {
-        b.json().init();
-    } else {
-        b.init();
-    }
+    mapless_replay::logging::init(cli.log_json, "info,iceoryx2=warn");
     let actor_id = incarnation_id(cli.index);
-    let span = tracing::info_span!("actor", run = %cli.run, role = "actor", actor_id = %actor_id);
-    let _enter = span.enter();
+    mapless_replay::logging::identify(&[("run", &cli.run), ("role", "actor"), ("actor_id", &actor_id)]);
     match main_inner(&cli, &actor_id) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

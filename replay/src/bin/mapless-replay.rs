@@ -161,14 +161,8 @@ impl Cli {
 }
 
 fn init_logging(json: bool) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
-    if json {
-        builder.json().with_current_span(true).with_span_list(false).init();
-    } else {
-        builder.init();
-    }
+    mapless_replay::logging::init(json, "info");
+    mapless_replay::logging::identify(&[("role", "replay")]);
 }
 
 /// Resolves on the first SIGINT or SIGTERM.
