@@ -1126,6 +1126,38 @@ mod tests {
         EpisodeRow { episode, wall_s: episode as f64, actor_id: "actor-0-1-2".into(), policy_version: 3, episode_return: ret, steps, terminal: steps < 1000, eqs: 12.0, ees: 1.5, distance_m: 40.0, shaded_time_s: 0.0 }
     }
 
+    /// deploy/config/ (the compose cluster) is written by hand; it must keep parsing, pass each
+    /// service's checks (TLS and token beyond loopback) and run the env1-sac preset's settings.
+    #[test]
+    fn the_compose_configs_parse_validate_and_match_the_env1_sac_preset() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/config");
+        let read = |f: &str| fs::read_to_string(dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+        fn yaml<T: Serialize>(v: &T) -> serde_yaml::Value {
+            serde_yaml::to_value(v).expect("serializes")
+        }
+        let preset: TrainConfig = serde_yaml::from_str(&preset_text("env1-sac").unwrap()).unwrap();
+        let preset = preset.resolve().unwrap();
+
+        let replay = ServerConfig::from_yaml_file(&dir.join("replay.yaml")).unwrap();
+        replay.validate().expect("replay.yaml passes the service's checks");
+        assert!(!replay.listen.ip().is_loopback() && replay.tls.is_some() && replay.auth_token_file.is_some());
+        assert_eq!(yaml(&replay.table), yaml(&preset.replay), "replay.yaml: the preset's table and rate limiter");
+
+        let learner: LearnerServiceConfig = serde_yaml::from_str(&read("learner.yaml")).unwrap();
+        assert_eq!(yaml(&learner.learner), yaml(&LearnerConfig { seed: preset.seed, ..preset.learner.clone() }), "learner.yaml: the preset's learner");
+        assert_eq!(yaml(&learner.driver), yaml(&preset.driver));
+        assert!(learner.replay.starts_with("https://") && learner.replay_security.tls_ca_file.is_some() && learner.replay_security.token_file.is_some());
+        assert!(learner.tls.is_some() && learner.auth_token_file.is_some(), "weights beyond loopback need TLS and a token");
+
+        let actor: ActorConfig = serde_yaml::from_str(&read("actor.yaml")).unwrap();
+        actor.validate().expect("actor.yaml passes the actor's checks");
+        assert_eq!(yaml(&actor.env), yaml(&preset.env), "actor.yaml: the preset's environment");
+        assert_eq!(actor.map, preset.map);
+        assert_eq!(yaml(&actor.exploration.noise), yaml(&preset.noise()));
+        assert!(matches!(&actor.replay, ReplayTarget::Grpc { uri } if uri.starts_with("https://")));
+        assert!(actor.weights.starts_with("https://") && actor.security.tls_ca_file.is_some() && actor.security.token_file.is_some());
+    }
+
     #[test]
     fn every_preset_resolves_and_names_itself() {
         for (name, text) in PRESETS {

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# deploy/certs.sh — a private CA, one server certificate for the services' host names, and a
+# bearer token, in deploy/secrets/ (git-ignored). Services that listen beyond loopback refuse to
+# start without TLS and a token; this makes both for a compose or multi-host cluster.
+#
+# Usage: deploy/certs.sh [NAME...]   (default names: replay learner localhost)
+# Existing files are kept (delete deploy/secrets/ to start over).
+set -euo pipefail
+dir="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)/secrets"
+mkdir -p "$dir"
+cd "$dir"
+if [ $# -gt 0 ]; then names=("$@"); else names=(replay learner localhost); fi
+if [ ! -s ca.pem ]; then
+    openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 825 \
+        -subj "/CN=mapless cluster CA" -keyout ca.key -out ca.pem 2>/dev/null
+fi
+if [ ! -s server.pem ]; then
+    san=$(printf 'DNS:%s,' "${names[@]}"); san="${san%,},IP:127.0.0.1"
+    openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj "/CN=${names[0]}" \
+        -keyout server.key -out server.csr 2>/dev/null
+    printf 'subjectAltName=%s\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n' "$san" > server.ext
+    openssl x509 -req -in server.csr -CA ca.pem -CAkey ca.key -CAcreateserial -days 825 \
+        -extfile server.ext -out server.pem 2>/dev/null
+    rm -f server.csr server.ext
+fi
+[ -s token ] || { openssl rand -hex 32 | tr -d '\n' > token; }
+chmod 600 ca.key server.key token
+chmod 644 ca.pem server.pem
+echo "certs.sh: $dir: ca.pem, server.pem/server.key ($(openssl x509 -in server.pem -noout -ext subjectAltName | tail -1 | tr -d ' ')), token" >&2

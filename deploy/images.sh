@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# deploy/images.sh — builds the three container images from this checkout:
+#
+#   mapless-replay:TAG   the replay service       (mapless-replay; glibc only, ~10 MB)
+#   mapless-actor:TAG    an actor process         (mapless-actor;  glibc only, ~10 MB)
+#   mapless-learner:TAG  the learner              (mapless learner; libtorch, several GB)
+#
+# Each image is `FROM scratch`: the release binary plus exactly the shared libraries `ldd` finds
+# for it (system ones at their paths, libtorch and its CUDA libraries in /opt/mapless/lib), so
+# nothing is pulled from a registry and the actor and replay images carry no libtorch.
+#
+# Usage: deploy/images.sh [TAG]   (default TAG: local; also $MAPLESS_PROFILE=release|dev)
+set -euo pipefail
+root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")/.." && pwd -P)"
+cd "$root"
+tag="${1:-local}"
+profile="${MAPLESS_PROFILE:-release}"
+out_dir="target/$([ "$profile" = dev ] && echo debug || echo "$profile")"
+command -v docker >/dev/null || { echo "images.sh: docker not found" >&2; exit 1; }
+bash scripts/setup-torch.sh
+echo "images.sh: building the binaries ($profile)" >&2
+cargo build --locked --profile "$profile" -p mapless-cli -p mapless-actor -p mapless-replay --bins
+
+# stage NAME BINARY: a root file system with BINARY and its libraries, and a Dockerfile.
+stage() {
+    local name="$1" bin="$2" dir="target/images/$1" lib dest
+    rm -rf "$dir"
+    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/tmp" "$dir/root/data" "$dir/root/train"
+    cp "$out_dir/$bin" "$dir/root/usr/local/bin/"
+    # `ldd` lines: "libx.so => /path/libx.so (0x…)" and "/lib64/ld-linux-x86-64.so.2 (0x…)".
+    ldd "$out_dir/$bin" | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// {print $1}' | while read -r lib; do
+        case "$lib" in
+            /lib/*|/lib64/*|/usr/lib/*) dest="$dir/root$(dirname "$lib")" ;;
+            *) dest="$dir/root/opt/mapless/lib" ;;
+        esac
+        mkdir -p "$dest"
+        cp -L "$lib" "$dest/"
+    done
+    if ldd "$out_dir/$bin" | grep -q "not found"; then
+        echo "images.sh: $bin has unresolved libraries:" >&2
+        ldd "$out_dir/$bin" | grep "not found" >&2
+        exit 1
+    fi
+    cat > "$dir/Dockerfile" <<DOCKERFILE
+FROM scratch
+COPY root/ /
+ENV LD_LIBRARY_PATH=/opt/mapless/lib
+LABEL org.opencontainers.image.title="mapless-$name" org.opencontainers.image.source="mapless"
+ENTRYPOINT ["/usr/local/bin/$bin"]
+DOCKERFILE
+    echo "images.sh: mapless-$name:$tag ($(du -sh "$dir/root" | cut -f1))" >&2
+    docker build -q -t "mapless-$name:$tag" "$dir" >/dev/null
+}
+
+stage replay mapless-replay
+stage actor mapless-actor
+stage learner mapless
+docker images --format '{{.Repository}}:{{.Tag}}  {{.Size}}' | grep -E "^mapless-(replay|actor|learner):$tag " >&2
