@@ -98,20 +98,43 @@ impl Default for ActorsSettings {
     }
 }
 
-/// Evaluation of the final policy.
+/// Evaluation: of the newest policy as the run goes, and of the final policy.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct EvalSettings {
-    /// Episodes (deterministic policy); 0 skips it.
+    /// Episodes of the final policy (deterministic); 0 skips it.
     pub episodes: u32,
     /// Map (default: the training map).
     pub map: Option<String>,
+    /// Evaluate the newest policy this often while training (pictures in `eval/`, a line in
+    /// `evals.csv`); none: only at the end.
+    pub every_minutes: Option<f64>,
+    /// Episodes of each evaluation while training.
+    pub progress_episodes: u32,
 }
 
 impl Default for EvalSettings {
     fn default() -> Self {
-        EvalSettings { episodes: 10, map: None }
+        EvalSettings { episodes: 10, map: None, every_minutes: Some(5.0), progress_episodes: 2 }
     }
+}
+
+/// `evals.csv`: one line per evaluation (while training and final).
+const EVALS_HEADER: &str = "wall_s,kind,policy_version,map,episodes,mean_steps,mean_return,mean_eqs,mean_ees,mean_distance_m,collisions";
+
+fn append_eval(run: &Path, wall_s: f64, kind: &str, s: &eval::EvalSummary) -> Result<()> {
+    let path = run.join("evals.csv");
+    let new = !path.exists();
+    let mut f = fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
+    if new {
+        writeln!(f, "{EVALS_HEADER}")?;
+    }
+    writeln!(
+        f,
+        "{wall_s:.1},{kind},{},{},{},{:.1},{:.3},{:.2},{:.4},{:.2},{}",
+        s.policy_version, s.map, s.episodes.len(), s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.collisions
+    )?;
+    Ok(())
 }
 
 /// Threads: libtorch's for the learner (actors are single-threaded each).
@@ -838,6 +861,10 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let mut stopped_because = String::from("interrupted (Ctrl-C)");
     let tty = std::io::stderr().is_terminal();
     let steady_from = cfg.stop.minutes.map_or(20.0, |m| (m * 20.0).min(20.0));
+    let eval_map = cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone());
+    let (progress_tx, progress_rx) = std_mpsc::channel::<std::result::Result<(f64, eval::EvalSummary), String>>();
+    let mut progress_running = false;
+    let mut last_progress_eval = Instant::now();
     let mut steady_start: Option<(Instant, u64, u64)> = None;
 
     loop {
@@ -907,6 +934,32 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
                 last_printed = Instant::now();
             }
             last_progress = Instant::now();
+        }
+        // Evaluation of the newest policy as the run goes (a thread: it must not hold up the
+        // supervision), its trajectories drawn into eval/.
+        if let Ok(r) = progress_rx.try_recv() {
+            progress_running = false;
+            match r {
+                Ok((wall_s, s)) => {
+                    tracing::info!(policy_version = s.policy_version, steps = s.mean_steps, eqs = s.mean_eqs, ees = s.mean_ees, "evaluation while training: {}", s.one_line());
+                    append_eval(&run, wall_s, "progress", &s)?;
+                }
+                Err(e) => tracing::warn!(error = %e, "evaluation while training failed"),
+            }
+        }
+        if let Some(every) = cfg.eval.every_minutes
+            && cfg.eval.progress_episodes > 0
+            && !progress_running
+            && last_progress_eval.elapsed().as_secs_f64() >= every * 60.0
+            && run.join("policy.safetensors").exists()
+        {
+            progress_running = true;
+            last_progress_eval = Instant::now();
+            let (tx, policy, map, env, n, seed, out) = (progress_tx.clone(), run.join("policy.safetensors"), eval_map.clone(), cfg.env.clone(), cfg.eval.progress_episodes, cfg.seed.wrapping_add(1_000_003), run.join("eval"));
+            let wall_s = offset_s + started.elapsed().as_secs_f64();
+            std::thread::Builder::new().name("eval".into()).spawn(move || {
+                let _ = tx.send(eval::evaluate(&policy, &map, &env, n, seed, Some(&out)).map(|s| (wall_s, s)).map_err(|e| format!("{e:#}")));
+            })?;
         }
         // Pictures as the run goes.
         if rows.len() > pictured && (rows.len() - pictured >= 50 || last_picture.elapsed() >= Duration::from_secs(30)) {
@@ -1004,11 +1057,24 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
 
     // Evaluation of the final policy.
     let evaluation = if cfg.eval.episodes > 0 && run.join("policy.safetensors").exists() {
-        let map = cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone());
+        // A progress evaluation still running writes into eval/ too: let it finish first.
+        if progress_running {
+            let _ = progress_rx.recv_timeout(Duration::from_secs(120));
+        }
+        // Only this evaluation's pictures remain.
+        if let Ok(dir) = fs::read_dir(run.join("eval")) {
+            for f in dir.flatten() {
+                if f.file_name().to_string_lossy().starts_with("episode-") {
+                    let _ = fs::remove_file(f.path());
+                }
+            }
+        }
+        let map = eval_map;
         eprintln!("evaluating the final policy: {} episodes on {map} (deterministic) ...", cfg.eval.episodes);
         match eval::evaluate(&run.join("policy.safetensors"), &map, &cfg.env, cfg.eval.episodes, cfg.seed.wrapping_add(1_000_003), Some(&run.join("eval"))) {
             Ok(s) => {
                 eprintln!("  {}", s.one_line());
+                append_eval(&run, offset_s + started.elapsed().as_secs_f64(), "final", &s)?;
                 Some(s)
             }
             Err(e) => {

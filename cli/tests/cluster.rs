@@ -46,6 +46,8 @@ const TINY: &[&str] = &[
     "driver.checkpoint_every=100",
     "driver.metrics_every=50",
     "eval.episodes=1",
+    "eval.every_minutes=0.02",
+    "eval.progress_episodes=1",
     "stop.average_return=null",
     "stop.average_steps=null",
 ];
@@ -190,6 +192,12 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     assert!(pids["restarts"].as_u64().unwrap() >= 1, "{pids}");
     assert_ne!(pids["actors"][0].as_u64().unwrap(), victim);
 
+    // The newest policy is evaluated as the run goes.
+    wait_for("a progress evaluation in evals.csv", Duration::from_secs(120), &mut child, &run, || {
+        let text = std::fs::read_to_string(run.join("evals.csv")).ok()?;
+        text.lines().any(|l| l.split(',').nth(1) == Some("progress") && l.split(',').nth(2).and_then(|v| v.parse::<u64>().ok()).is_some_and(|v| v >= 1)).then_some(())
+    });
+
     // Stop (as Ctrl-C would): a final checkpoint, the curve, a summary.
     std::thread::sleep(Duration::from_secs(3));
     sigterm(child.id());
@@ -203,6 +211,18 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     assert!(run.join("checkpoints").join("LATEST").exists(), "a checkpoint was written");
     assert!(run.join("curves.png").exists() && run.join("policy.safetensors").exists());
     assert!(run.join("eval").join("episode-1.png").exists(), "evaluation trajectory drawn");
+    let evals = std::fs::read_to_string(run.join("evals.csv")).unwrap();
+    assert!(evals.lines().last().unwrap().split(',').nth(1) == Some("final"), "{evals}");
+    // Every log line of every process names the run, the role and (actors) the actor id.
+    for (file, role) in [("replay.log", "replay"), ("learner.log", "learner"), ("actor-0.log", "actor"), ("actor-1.log", "actor")] {
+        let text = std::fs::read_to_string(run.join("logs").join(file)).unwrap();
+        let lines: Vec<&str> = text.lines().filter(|l| l.starts_with("20")).collect();
+        assert!(!lines.is_empty(), "{file} has log lines");
+        for l in lines {
+            assert!(l.contains(" run=tiny") && l.contains(&format!(" role={role}")), "{file}: {l}");
+            assert!(role != "actor" || l.contains(" actor_id=actor-"), "{file}: {l}");
+        }
+    }
 
     // Resume: the learner continues from its checkpoint (updates keep counting up), episodes
     // continue the same curve.
