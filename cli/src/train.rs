@@ -65,7 +65,8 @@ pub struct StopCriteria {
     pub average_return: Option<f64>,
     /// ... and (when both are set) the moving average of episode steps reaches this.
     pub average_steps: Option<f64>,
-    /// Stop after this many minutes of wall time.
+    /// Stop after this many minutes of wall time (of the whole run: a resumed run counts its
+    /// earlier sessions).
     pub minutes: Option<f64>,
 }
 
@@ -301,10 +302,10 @@ pub struct TrainArgs {
     /// Vehicles per actor process (overrides the preset).
     #[arg(long, overrides_with = "vehicles")]
     pub vehicles: Option<usize>,
-    /// Stop after K training episodes (overrides the preset).
+    /// Stop after K training episodes of the run, earlier sessions included (overrides the preset).
     #[arg(long, overrides_with = "episodes")]
     pub episodes: Option<u64>,
-    /// Stop after this many minutes (overrides the preset).
+    /// Stop after this many minutes of the run, earlier sessions included (overrides the preset).
     #[arg(long, overrides_with = "minutes")]
     pub minutes: Option<f64>,
     /// Run folder [default: runs/<preset name>].
@@ -981,8 +982,10 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             stopped_because = format!("{k} episodes");
             stop.store(true, Ordering::Relaxed);
         }
+        // Minutes of the whole run, like episodes: a resumed run counts its earlier sessions
+        // (up to its last recorded episode).
         if let Some(m) = cfg.stop.minutes
-            && started.elapsed().as_secs_f64() >= m * 60.0
+            && offset_s + started.elapsed().as_secs_f64() >= m * 60.0
         {
             stopped_because = format!("{m} minutes");
             stop.store(true, Ordering::Relaxed);
