@@ -4,8 +4,11 @@
 # start without TLS and a token; this makes both for a compose or multi-host cluster.
 #
 # Usage: deploy/certs.sh [NAME...]   (default names: replay learner localhost)
-# Existing files are kept (delete deploy/secrets/ to start over).
+# Existing files are kept (delete deploy/secrets/ to start over). deploy/compose.yaml mounts
+# single files: actors get ca.pem and token, the services also server.pem and server.key; the
+# CA's key (ca.key) never leaves the host.
 set -euo pipefail
+umask 077
 dir="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)/secrets"
 mkdir -p "$dir"
 cd "$dir"
@@ -14,7 +17,8 @@ if [ ! -s ca.pem ]; then
     openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 825 \
         -subj "/CN=mapless cluster CA" -keyout ca.key -out ca.pem 2>/dev/null
 fi
-if [ ! -s server.pem ]; then
+# A new CA needs a new server certificate.
+if [ ! -s server.pem ] || [ ca.pem -nt server.pem ]; then
     san=$(printf 'DNS:%s,' "${names[@]}"); san="${san%,},IP:127.0.0.1"
     openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj "/CN=${names[0]}" \
         -keyout server.key -out server.csr 2>/dev/null

@@ -7,7 +7,9 @@
 #
 # Each image is `FROM scratch`: the release binary plus exactly the shared libraries `ldd` finds
 # for it (system ones at their paths, libtorch and its CUDA libraries in /opt/mapless/lib), so
-# nothing is pulled from a registry and the actor and replay images carry no libtorch.
+# nothing is pulled from a registry and the actor and replay images carry no libtorch. The
+# learner image runs on CPU: libraries that CUDA loads at run time (cuDNN's engines, NVRTC's
+# builtins) are not in the ldd closure, so `device: cuda` needs an image built from a CUDA base.
 #
 # Usage: deploy/images.sh [TAG]   (default TAG: local; also $MAPLESS_PROFILE=release|dev)
 set -euo pipefail
@@ -26,6 +28,7 @@ stage() {
     local name="$1" bin="$2" dir="target/images/$1" lib dest
     rm -rf "$dir"
     mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/tmp" "$dir/root/data" "$dir/root/train"
+    chmod 1777 "$dir/root/tmp"
     cp "$out_dir/$bin" "$dir/root/usr/local/bin/"
     # `ldd` lines: "libx.so => /path/libx.so (0x…)" and "/lib64/ld-linux-x86-64.so.2 (0x…)".
     ldd "$out_dir/$bin" | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// {print $1}' | while read -r lib; do

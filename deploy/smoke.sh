@@ -9,6 +9,8 @@
 #   4. `docker-compose stop` ends the learner with a final checkpoint.
 #
 # Usage: deploy/smoke.sh   (SKIP_IMAGES=1 reuses built images; KEEP=1 leaves the cluster up)
+# Run it as root (or with sudo): step 3 kills the actor's process from the host, because
+# `docker kill` counts as a deliberate stop and turns the restart policy off.
 # Not part of ./test.sh: it needs a Docker engine and builds a multi-GB learner image.
 set -euo pipefail
 here="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
@@ -17,7 +19,8 @@ export MAPLESS_TAG="${MAPLESS_TAG:-local}"
 [ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
 ./certs.sh
 project=mapless-smoke
-dc() { docker-compose -p "$project" -f compose.yaml "$@"; }
+if command -v docker-compose >/dev/null; then compose=(docker-compose); else compose=(docker compose); fi
+dc() { "${compose[@]}" -p "$project" -f compose.yaml "$@"; }
 logs="$(mktemp -d)/compose.log"
 finish() {
     local rc=$?

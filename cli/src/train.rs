@@ -120,6 +120,27 @@ impl Default for EvalSettings {
     }
 }
 
+/// An evaluation of the newest policy while training, on its own thread.
+struct ProgressEval {
+    wall_s: f64,
+    handle: std::thread::JoinHandle<Result<eval::EvalSummary>>,
+}
+
+impl ProgressEval {
+    /// Waits for it and records it in `evals.csv`; a failed or panicked evaluation is logged.
+    fn finish(self, run: &Path) -> Result<()> {
+        match self.handle.join() {
+            Ok(Ok(s)) => {
+                tracing::info!(policy_version = s.policy_version, "evaluation while training: {}", s.one_line());
+                append_eval(run, self.wall_s, "progress", &s)?;
+            }
+            Ok(Err(e)) => tracing::warn!(error = %format!("{e:#}"), "evaluation while training failed"),
+            Err(_) => tracing::warn!("evaluation while training panicked"),
+        }
+        Ok(())
+    }
+}
+
 /// `evals.csv`: one line per evaluation (while training and final).
 const EVALS_HEADER: &str = "wall_s,kind,policy_version,map,episodes,mean_steps,mean_return,mean_eqs,mean_ees,mean_distance_m,collisions";
 
@@ -546,7 +567,7 @@ impl Proc {
                 std::thread::sleep(Duration::from_millis(50));
             }
             if c.try_wait().ok().flatten().is_none() {
-                tracing::warn!(role = %self.role, "did not stop within {grace:?}; killing");
+                tracing::warn!(child = %self.role, "did not stop within {grace:?}; killing");
                 let _ = c.kill();
                 let _ = c.wait();
             }
@@ -576,7 +597,7 @@ impl Proc {
             }
             let wait = Duration::from_secs(1 << (self.quick_failures - 1).min(5)).min(Duration::from_secs(30));
             self.not_before = Some(Instant::now() + wait);
-            tracing::warn!(role = %self.role, retry_in_s = wait.as_secs(), "exited soon after starting; restarting after a pause");
+            tracing::warn!(child = %self.role, retry_in_s = wait.as_secs(), "exited soon after starting; restarting after a pause");
             return Ok(false);
         }
         self.quick_failures = 0;
@@ -863,8 +884,8 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let tty = std::io::stderr().is_terminal();
     let steady_from = cfg.stop.minutes.map_or(20.0, |m| (m * 20.0).min(20.0));
     let eval_map = cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone());
-    let (progress_tx, progress_rx) = std_mpsc::channel::<std::result::Result<(f64, eval::EvalSummary), String>>();
-    let mut progress_running = false;
+    // The evaluation running now, if any, and when the last one ended.
+    let mut progress_eval: Option<ProgressEval> = None;
     let mut last_progress_eval = Instant::now();
     let mut steady_start: Option<(Instant, u64, u64)> = None;
 
@@ -938,29 +959,19 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         }
         // Evaluation of the newest policy as the run goes (a thread: it must not hold up the
         // supervision), its trajectories drawn into eval/.
-        if let Ok(r) = progress_rx.try_recv() {
-            progress_running = false;
-            match r {
-                Ok((wall_s, s)) => {
-                    tracing::info!(policy_version = s.policy_version, steps = s.mean_steps, eqs = s.mean_eqs, ees = s.mean_ees, "evaluation while training: {}", s.one_line());
-                    append_eval(&run, wall_s, "progress", &s)?;
-                }
-                Err(e) => tracing::warn!(error = %e, "evaluation while training failed"),
-            }
+        if progress_eval.as_ref().is_some_and(|p| p.handle.is_finished()) {
+            progress_eval.take().expect("checked").finish(&run)?;
+            last_progress_eval = Instant::now();
         }
         if let Some(every) = cfg.eval.every_minutes
             && cfg.eval.progress_episodes > 0
-            && !progress_running
+            && progress_eval.is_none()
             && last_progress_eval.elapsed().as_secs_f64() >= every * 60.0
             && run.join("policy.safetensors").exists()
         {
-            progress_running = true;
-            last_progress_eval = Instant::now();
-            let (tx, policy, map, env, n, seed, out) = (progress_tx.clone(), run.join("policy.safetensors"), eval_map.clone(), cfg.env.clone(), cfg.eval.progress_episodes, cfg.seed.wrapping_add(1_000_003), run.join("eval"));
-            let wall_s = offset_s + started.elapsed().as_secs_f64();
-            std::thread::Builder::new().name("eval".into()).spawn(move || {
-                let _ = tx.send(eval::evaluate(&policy, &map, &env, n, seed, Some(&out)).map(|s| (wall_s, s)).map_err(|e| format!("{e:#}")));
-            })?;
+            let (policy, map, env, n, seed, out) = (run.join("policy.safetensors"), eval_map.clone(), cfg.env.clone(), cfg.eval.progress_episodes, cfg.seed.wrapping_add(1_000_003), run.join("eval"));
+            let handle = std::thread::Builder::new().name("eval".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, Some(&out)))?;
+            progress_eval = Some(ProgressEval { wall_s: offset_s + started.elapsed().as_secs_f64(), handle });
         }
         // Pictures as the run goes.
         if rows.len() > pictured && (rows.len() - pictured >= 50 || last_picture.elapsed() >= Duration::from_secs(30)) {
@@ -1057,13 +1068,13 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         u
     };
     draw_curves(&run, &cfg, &rows);
+    // An evaluation still running writes into eval/ too: it ends first (a few episodes).
+    if let Some(p) = progress_eval.take() {
+        p.finish(&run)?;
+    }
 
     // Evaluation of the final policy.
     let evaluation = if cfg.eval.episodes > 0 && run.join("policy.safetensors").exists() {
-        // A progress evaluation still running writes into eval/ too: let it finish first.
-        if progress_running {
-            let _ = progress_rx.recv_timeout(Duration::from_secs(120));
-        }
         // Only this evaluation's pictures remain.
         if let Ok(dir) = fs::read_dir(run.join("eval")) {
             for f in dir.flatten() {

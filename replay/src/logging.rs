@@ -101,13 +101,20 @@ fn tag(line: &str, identity: &[(String, String)], json: bool) -> String {
         }
         out.push_str(rest);
     } else {
-        out.push_str(body);
+        // On the first line: a multi-line message continues below it.
+        let (first, rest) = body.split_at(body.find('\n').unwrap_or(body.len()));
+        out.push_str(first);
         for (k, v) in identity {
             out.push(' ');
             out.push_str(k);
             out.push('=');
-            out.push_str(v);
+            if v.contains(|c: char| c.is_whitespace() || c == '=' || c == '"') {
+                out.push_str(&format!("{v:?}"));
+            } else {
+                out.push_str(v);
+            }
         }
+        out.push_str(rest);
     }
     out.push('\n');
     out
@@ -123,7 +130,9 @@ mod tests {
 
     #[test]
     fn text_lines_end_with_the_identity() {
-        assert_eq!(tag("2026 INFO x: hello\n", &id(), false), "2026 INFO x: hello run=env1 \"sac\" role=actor\n");
+        assert_eq!(tag("2026 INFO x: hello\n", &id(), false), "2026 INFO x: hello run=\"env1 \\\"sac\\\"\" role=actor\n");
+        // A multi-line message: the identity ends its first line.
+        assert_eq!(tag("2026 WARN x: a\nb\n", &id()[1..], false), "2026 WARN x: a role=actor\nb\n");
     }
 
     #[test]

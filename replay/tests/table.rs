@@ -85,6 +85,14 @@ fn ratio_is_held_within_its_band_under_concurrent_insert_and_sample() {
             }
         })
     };
+    // Before any sampling the inserter must hit the top of the band and wait there: let it
+    // (whether it later runs ahead again depends on scheduling, so this part is made certain).
+    let end = Instant::now() + Duration::from_secs(30);
+    while t.info().inserts_total < 70 {
+        assert!(Instant::now() < end, "the inserter never filled the band: {:?}", t.info());
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    std::thread::sleep(Duration::from_millis(100));
     let mut worst = (f64::INFINITY, f64::NEG_INFINITY);
     let mut sampled = 0;
     while sampled < 3000 {
