@@ -451,6 +451,11 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
     report(json, "replay.snapshot_lock_ms", cfg.clone(), lock_ms, "ms");
     report(json, "replay.insert_worst_ms_during_snapshots", cfg, insert_ms, "ms");
     for obs_dim in [17usize, 203] {
+        let v = rb::first_fill_rows_per_s(obs_dim)?;
+        report(json, "replay.first_fill_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "rows": rb::INGEST_TABLE_ROWS, "batch_rows": rb::BATCH_ROWS, "transport": "none"}), v, "rows/s");
+    }
+    // Ingest into a full table (every insert evicts), as in a long run.
+    for obs_dim in [17usize, 203] {
         for writers in [1usize, 4, 16] {
             let v = rb::shm_ingest_rows_per_s(writers, obs_dim, d)?;
             report(json, "replay.ingest_shm_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS, "writer": "thread"}), v, "rows/s");

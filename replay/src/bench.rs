@@ -69,12 +69,33 @@ async fn client(addr: std::net::SocketAddr) -> ReplayServiceClient<tonic::transp
         .max_encoding_message_size(MAX_MESSAGE_BYTES)
 }
 
+/// Rows of the ingest benchmarks' table (paper Table I).
+pub const INGEST_TABLE_ROWS: usize = 1_000_000;
+
+/// A table of [`INGEST_TABLE_ROWS`] already filled to capacity, so every measured insert
+/// evicts the oldest rows, as in a long run: the first fill of fresh memory is page-fault bound
+/// and measured on its own by [`first_fill_rows_per_s`].
+fn full_table(obs_dim: usize) -> Result<Table, ReplayError> {
+    let table = bench_table(INGEST_TABLE_ROWS, obs_dim)?;
+    fill(&table, INGEST_TABLE_ROWS, obs_dim, BATCH_ROWS)?;
+    Ok(table)
+}
+
+/// Rows per second of the first fill of a fresh [`INGEST_TABLE_ROWS`]-row table, inserted
+/// in-process (no transport) in batches of [`BATCH_ROWS`]: what a new replay's start costs.
+pub fn first_fill_rows_per_s(obs_dim: usize) -> Result<f64, ReplayError> {
+    let table = bench_table(INGEST_TABLE_ROWS, obs_dim)?;
+    let t0 = Instant::now();
+    fill(&table, INGEST_TABLE_ROWS, obs_dim, BATCH_ROWS)?;
+    Ok(INGEST_TABLE_ROWS as f64 / t0.elapsed().as_secs_f64())
+}
+
 /// Rows per second acknowledged over gRPC with `writers` concurrent Insert streams, each
-/// pipelining pre-encoded batches, for about `duration`.
+/// pipelining pre-encoded batches, for about `duration`, into a full table.
 pub fn grpc_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration) -> f64 {
     let rt = runtime();
     rt.block_on(async move {
-        let table = Arc::new(bench_table(1_000_000, obs_dim).expect("valid table"));
+        let table = Arc::new(full_table(obs_dim).expect("valid table"));
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
         let addr = listener.local_addr().expect("address");
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -208,10 +229,10 @@ pub fn resident_bytes() -> u64 {
 
 /// Rows per second stored over iceoryx2 shared memory with `writers` writer threads (each an
 /// [`ShmWriter`](crate::shm::ShmWriter) with its own window of unacknowledged batches), for
-/// about `duration`. Uses a private iceoryx2 domain and removes it afterwards.
+/// about `duration`, into a full table. Uses a private iceoryx2 domain and removes it afterwards.
 pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration) -> Result<f64, ReplayError> {
     use crate::shm::{ShmConfig, ShmIngest, ShmWriter};
-    let table = Arc::new(bench_table(1_000_000, obs_dim)?);
+    let table = Arc::new(full_table(obs_dim)?);
     let id = std::process::id();
     let domain = format!("mlbench{id}_");
     let cfg = ShmConfig { prefix: format!("mapless-bench/{id}"), domain: domain.clone(), ..ShmConfig::for_table("bench") };
