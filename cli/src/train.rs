@@ -633,6 +633,16 @@ fn wait_line(rx: &std_mpsc::Receiver<(String, String)>, role: &str, prefix: &str
     }
 }
 
+/// Starts a service child and waits until it prints `ready` followed by its address; returns
+/// it with that address and the one of its `metrics on http://ADDR/metrics` line.
+fn start_service(role: &str, cmd: Vec<String>, log: PathBuf, ready: &str, rx: &std_mpsc::Receiver<(String, String)>, tx: &std_mpsc::Sender<(String, String)>) -> Result<(Proc, SocketAddr, SocketAddr)> {
+    let mut proc_ = Proc::spawn(role, cmd, log, Some(tx.clone()))?;
+    let said = wait_line(rx, role, ready, Duration::from_secs(120), &mut proc_)?;
+    let addr = said_addr(&said, ready)?;
+    let metrics = said_addr(&said, "metrics on http://")?;
+    Ok((proc_, addr, metrics))
+}
+
 /// The address in the line of `said` that starts with `prefix` (`listening on ADDR`,
 /// `metrics on http://ADDR/metrics`).
 fn said_addr(said: &[String], prefix: &str) -> Result<SocketAddr> {
@@ -773,10 +783,8 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         server.persistence.dir = Some(run_abs.join("replay"));
     }
     fs::write(run.join("replay.yaml"), serde_yaml::to_string(&server)?)?;
-    let mut replay = Proc::spawn("replay", json_flag(vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))]), logs.join("replay.log"), Some(line_tx.clone()))?;
-    let said = wait_line(&line_rx, "replay", "listening on ", Duration::from_secs(120), &mut replay)?;
-    let replay_addr = said_addr(&said, "listening on ")?;
-    let replay_metrics = said_addr(&said, "metrics on http://")?;
+    let replay_cmd = json_flag(vec![replay_bin, "--config".into(), p(&run_abs.join("replay.yaml"))]);
+    let (mut replay, replay_addr, replay_metrics) = start_service("replay", replay_cmd, logs.join("replay.log"), "listening on ", &line_rx, &line_tx)?;
     // A restarted replay comes back on the same ports.
     server.listen = replay_addr;
     server.metrics_listen = Some(replay_metrics);
@@ -805,10 +813,8 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         learner_cmd.push("--log-json".into());
     }
     learner_cmd.extend(["learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()]);
-    let mut learner = Proc::spawn("learner", learner_cmd, logs.join("learner.log"), Some(line_tx.clone()))?;
-    let said = wait_line(&line_rx, "learner", "weights on ", Duration::from_secs(120), &mut learner)?;
-    let weights_addr = said_addr(&said, "weights on ")?;
-    let learner_metrics = said_addr(&said, "metrics on http://")?;
+    let (mut learner, weights_addr, learner_metrics) = start_service("learner", learner_cmd, logs.join("learner.log"), "weights on ", &line_rx, &line_tx)?;
+    // A restarted learner comes back on the same ports.
     learner_cfg.weights_listen = weights_addr;
     learner_cfg.metrics_listen = Some(learner_metrics);
     fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
@@ -884,6 +890,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let tty = std::io::stderr().is_terminal();
     let steady_from = cfg.stop.minutes.map_or(20.0, |m| (m * 20.0).min(20.0));
     let eval_map = cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone());
+    let eval_seed = cfg.seed.wrapping_add(1_000_003);
     // The evaluation running now, if any, and when the last one ended.
     let mut progress_eval: Option<ProgressEval> = None;
     let mut last_progress_eval = Instant::now();
@@ -969,7 +976,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             && last_progress_eval.elapsed().as_secs_f64() >= every * 60.0
             && run.join("policy.safetensors").exists()
         {
-            let (policy, map, env, n, seed, out) = (run.join("policy.safetensors"), eval_map.clone(), cfg.env.clone(), cfg.eval.progress_episodes, cfg.seed.wrapping_add(1_000_003), run.join("eval"));
+            let (policy, map, env, n, seed, out) = (run.join("policy.safetensors"), eval_map.clone(), cfg.env.clone(), cfg.eval.progress_episodes, eval_seed, run.join("eval"));
             let handle = std::thread::Builder::new().name("eval".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, Some(&out)))?;
             progress_eval = Some(ProgressEval { wall_s: offset_s + started.elapsed().as_secs_f64(), handle });
         }
@@ -1085,7 +1092,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         }
         let map = eval_map;
         eprintln!("evaluating the final policy: {} episodes on {map} (deterministic) ...", cfg.eval.episodes);
-        match eval::evaluate(&run.join("policy.safetensors"), &map, &cfg.env, cfg.eval.episodes, cfg.seed.wrapping_add(1_000_003), Some(&run.join("eval"))) {
+        match eval::evaluate(&run.join("policy.safetensors"), &map, &cfg.env, cfg.eval.episodes, eval_seed, Some(&run.join("eval"))) {
             Ok(s) => {
                 eprintln!("  {}", s.one_line());
                 append_eval(&run, offset_s + started.elapsed().as_secs_f64(), "final", &s)?;
