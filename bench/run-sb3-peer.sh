@@ -69,27 +69,33 @@ echo "== load: $(uptime)"
 [[ "$HAVE_OURS" == 1 ]] || exit 0
 "$PY" - "$OUT/learner-ours.jsonl" "$OUT/sb3-peer.jsonl" <<'EOF'
 import json, sys
-def rows(path):
+def rows(path, bench="learner.updates_per_s"):
     for line in open(path):
         if line.startswith("{"):
             r = json.loads(line)
+            if r.get("bench", "learner") not in (bench, "learner"):
+                continue  # ours also prints the matmul rate and the f32 ceiling
             r.update(r.get("config") or {})
             algo = str(r.get("algo") or r.get("bench", "").rsplit(".", 1)[-1]).lower()
             value = r.get("updates_per_s", r.get("value"))
             if algo and value is not None and "threads" in r:
                 yield r.get("impl", "mapless"), algo, int(r["threads"]), float(value)
 ours = {(a, t): v for _, a, t, v in rows(sys.argv[1])}
+ceiling = {(a, t): v for _, a, t, v in rows(sys.argv[1], "learner.f32_ceiling_updates_per_s")}
 peer = {}
 for impl, a, t, v in rows(sys.argv[2]):
     peer.setdefault(impl, {})[(a, t)] = v
 print()
 impls = sorted(peer)
-print(f"{'algo':>5} {'threads':>7} {'ours upd/s':>11} " + " ".join(f"{i + ' upd/s':>14} {'ours/' + i:>12}" for i in impls))
+print(f"{'algo':>5} {'threads':>7} {'ours upd/s':>11} {'f32 ceiling':>11} " + " ".join(f"{i + ' upd/s':>14} {'ours/' + i:>12} {'ceiling/' + i:>13}" for i in impls))
 for key in sorted(ours, key=lambda k: (["sac", "td3", "ddpg"].index(k[0]) if k[0] in ("sac", "td3", "ddpg") else 9, k[1])):
     cells = []
     for i in impls:
         p = peer[i].get(key)
-        cells.append(f"{p:>14,.1f} {ours[key] / p:>11.2f}x" if p else f"{'-':>14} {'-':>12}")
-    print(f"{key[0]:>5} {key[1]:>7} {ours[key]:>11,.1f} " + " ".join(cells))
-print("(target of issue 4: ours/sb3 >= 3x for SAC)")
+        c = ceiling.get(key)
+        cells.append(f"{p:>14,.1f} {ours[key] / p:>11.2f}x {(f'{c / p:.2f}x' if c else '-'):>13}" if p else f"{'-':>14} {'-':>12} {'-':>13}")
+    c = ceiling.get(key)
+    print(f"{key[0]:>5} {key[1]:>7} {ours[key]:>11,.1f} {(f'{c:,.1f}' if c else '-'):>11} " + " ".join(cells))
+print("(target of issue 4: ours/sb3 >= 3x for SAC; 'f32 ceiling' is the updates/s that this machine's")
+print(" f32 matrix products alone allow (mapless_learner::ceiling): no f32 implementation exceeds it)")
 EOF

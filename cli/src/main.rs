@@ -498,7 +498,21 @@ fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String]
     if !json {
         println!("learner updates per second on {device}: obs {obs_dim}, act {act_dim}, 2×256 hidden, minibatch 128, {seconds} s each");
     }
+    let dev = Device::parse(device)?;
     for &t in threads {
+        TorchThreads { intra_op: t, inter_op: 1 }.apply()?;
+        // The bound every algorithm is measured against: libtorch's product of the hidden
+        // layer's shape, here, with these threads (mapless_learner::ceiling).
+        let base = LearnerConfig::default();
+        let shape = format!("{}x{}x{}", base.batch_size, base.hidden_width, base.hidden_width);
+        let mut f32_gflops = 0.0;
+        for (name, bf16) in [("f32", false), ("bf16", true)] {
+            let g = mapless_learner::ceiling::matmul_gflops(base.batch_size as i64, base.hidden_width, bf16, dev, seconds.min(2.0))?;
+            if name == "f32" {
+                f32_gflops = g;
+            }
+            report(json, "learner.matmul_gflops", serde_json::json!({"device": device, "threads": t, "dtype": name, "shape": shape}), g, "GFLOP/s");
+        }
         for &kind in &kinds {
             let fused_options: &[bool] = if unfused && kind != AlgorithmKind::Ddpg { &[true, false] } else { &[true] };
             for &fused in fused_options {
@@ -507,6 +521,15 @@ fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String]
                 let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
                 let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
                 report(json, "learner.updates_per_s", config, v, "updates/s");
+                if fused {
+                    // Matrix-product work per update, and the updates/s that f32 products alone
+                    // would allow at the rate just measured: no implementation in f32 beats it.
+                    let flops = mapless_learner::ceiling::update_flops(&cfg, obs_dim, act_dim);
+                    let bound = f32_gflops * 1e9 / flops;
+                    let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "flop_per_update": flops, "f32_matmul_gflops": (f32_gflops * 10.0).round() / 10.0});
+                    report(json, "learner.f32_ceiling_updates_per_s", config.clone(), bound, "updates/s");
+                    report(json, "learner.share_of_f32_ceiling", config, v / bound, "fraction");
+                }
             }
         }
     }

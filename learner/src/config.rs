@@ -106,6 +106,13 @@ pub struct LearnerConfig {
     /// 1 thread (97 vs 119 in a busier run), 180 vs 152 on 2 threads; a wash for DDPG (one
     /// critic) [inferred: true].
     pub fused_critics: bool,
+    /// SAC on the CPU: run each update through hand-written forward and backward passes (one
+    /// BLAS product per layer into reused buffers, fused elementwise loops, no autograd graph;
+    /// `learner/src/cpu.rs`) instead of libtorch's autograd. The same equations, noise draws,
+    /// Adam and clipping; results equal to the autograd path up to float rounding (tested).
+    /// Purely a speed choice; see docs/learner.md for what it gave [inferred: true]. DDPG,
+    /// TD3 and CUDA always use autograd.
+    pub fused_update: bool,
     /// DDPG's own settings.
     pub ddpg: DdpgConfig,
     /// TD3's own settings.
@@ -130,6 +137,7 @@ impl Default for LearnerConfig {
             grad_clip_norm: Some(1.0),
             adam: AdamConfig::default(),
             fused_critics: true,
+            fused_update: true,
             ddpg: DdpgConfig::default(),
             td3: Td3Config::default(),
             sac: SacConfig::default(),

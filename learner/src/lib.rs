@@ -18,6 +18,8 @@ mod threads;
 // Algorithms and everything they need to learn and resume.
 pub mod algo;
 pub mod batch;
+pub mod ceiling;
+mod cpu;
 pub mod checkpoint;
 pub mod driver;
 pub mod config;

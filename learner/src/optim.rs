@@ -94,6 +94,28 @@ impl Adam {
     }
 
     /// The moments, for checkpoints: `(exp_avg, exp_avg_sq)`.
+    /// [`Adam::step`] on host memory, one fused pass: `params` and `grad` are the network's
+    /// flat buffers as slices (CPU only; the moments must be CPU tensors, which they are
+    /// whenever the parameters are). Same arithmetic in f32 as the tensor version, which
+    /// `lerp`s with weight 1 − β < ½ (m + (1 − β)(g − m)).
+    pub fn step_host(&mut self, params: &mut [f32], grad: &[f32]) {
+        let m = crate::cpu::host_slice_mut(&self.exp_avg).expect("Adam moments on the host");
+        let v = crate::cpu::host_slice_mut(&self.exp_avg_sq).expect("Adam moments on the host");
+        assert!(m.len() == params.len() && grad.len() == params.len(), "Adam sizes");
+        self.step += 1;
+        let AdamConfig { beta1, beta2, eps } = self.cfg;
+        let t = i32::try_from(self.step).unwrap_or(i32::MAX);
+        let step_size = (self.lr / (1.0 - beta1.powi(t))) as f32;
+        let sqrt_bc2 = (1.0 - beta2.powi(t)).sqrt() as f32;
+        let (w1, w2, eps) = ((1.0 - beta1) as f32, (1.0 - beta2) as f32, eps as f32);
+        for (((p, &g), m), v) in params.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
+            *m += w1 * (g - *m);
+            *v += w2 * (g * g - *v);
+            let denom = v.sqrt() / sqrt_bc2 + eps;
+            *p -= step_size * *m / denom;
+        }
+    }
+
     pub fn moments(&self) -> (&Tensor, &Tensor) {
         (&self.exp_avg, &self.exp_avg_sq)
     }
@@ -160,6 +182,26 @@ mod tests {
         let mut adam = Adam::new(1, tch::Device::Cpu, 0.01, AdamConfig::default());
         adam.step(&q, &Tensor::from_slice(&[-7.0f32]));
         assert!((q.double_value(&[0]) - 0.01).abs() < 1e-7);
+    }
+
+    #[test]
+    fn host_step_equals_the_tensor_step() {
+        let g = [[0.5f32, -3.0, 1e-3], [0.25, 1.0, -2.0], [-1.0, 0.1, 0.0]];
+        let p = Tensor::from_slice(&[1.0f32, -2.0, 0.3]);
+        let mut a = Adam::new(3, tch::Device::Cpu, 0.1, AdamConfig::default());
+        let mut host = vec![1.0f32, -2.0, 0.3];
+        let mut b = Adam::new(3, tch::Device::Cpu, 0.1, AdamConfig::default());
+        for g in g {
+            a.step(&p, &Tensor::from_slice(&g));
+            b.step_host(&mut host, &g);
+        }
+        let want = Vec::<f32>::try_from(&p).unwrap();
+        for (x, y) in host.iter().zip(&want) {
+            assert!((x - y).abs() <= 1e-6 * (1.0 + y.abs()), "{host:?} vs {want:?}");
+        }
+        assert_eq!(b.steps(), 3);
+        assert!(b.moments().0.allclose(a.moments().0, 1e-6, 1e-7, false));
+        assert!(b.moments().1.allclose(a.moments().1, 1e-6, 1e-7, false));
     }
 
     #[test]

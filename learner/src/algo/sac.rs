@@ -43,6 +43,7 @@ use tch::Tensor;
 use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, finite, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
+use crate::cpu::{Acts, Body, Scratch, host_slice, host_slice_mut};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -62,6 +63,10 @@ pub struct Sac {
     /// One tensor, `log_alpha` `[1]`.
     log_alpha: Trained,
     target_entropy: f64,
+    /// Buffers of the fused CPU update ([`LearnerConfig::fused_update`]), reused every step.
+    ///
+    /// [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
+    host: HostWork,
 }
 
 /// A sampled tanh-Gaussian action and its log-density.
@@ -97,6 +102,7 @@ impl Sac {
             log_alpha: Trained::new(log_alpha, c.cfg.sac.alpha_lr, &c),
             target_critic,
             target_entropy,
+            host: HostWork::default(),
             c,
         })
     }
@@ -152,6 +158,11 @@ impl Sac {
     }
 
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
+        if self.c.cfg.fused_update && self.c.device == tch::Device::Cpu {
+            if let Some(stats) = self.update_host(b)? {
+                return Ok(stats);
+            }
+        }
         let (rows, act, device) = (b.rows(), self.c.act_dim, self.c.device);
         let eps_next = self.c.noise.normal(rows, act, device);
         let eps_now = self.c.noise.normal(rows, act, device);
@@ -273,4 +284,254 @@ pub fn tanh_gaussian(mean: &Tensor, log_std: &Tensor, eps: &Tensor) -> Sample {
     let log_det = ((-&u * 2.0).softplus() + &u - std::f64::consts::LN_2) * 2.0; // = −ln(1 − tanh²u)
     let log_prob = (gaussian + log_det).sum_dim_intlist(1, true, None);
     Sample { action, log_prob }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The fused CPU update: the same steps 1–4, backward passes written out.
+// ---------------------------------------------------------------------------------------------
+
+/// Reused buffers of [`Sac::update_host`].
+#[derive(Debug, Default)]
+struct HostWork {
+    /// Critic input `[B, obs + act]`.
+    x: Vec<f32>,
+    actor: Acts,
+    critics: [Acts; 2],
+    scratch: Scratch,
+    /// Per critic: ∂L/∂Q `[B]`.
+    dq: [Vec<f32>; 2],
+    /// ∂L/∂x through one critic `[B, obs + act]`.
+    dx: Vec<f32>,
+    /// ∂L/∂a summed over critics `[B, act]`.
+    da: Vec<f32>,
+    /// ∂L/∂(actor output) `[B, 2·act]`.
+    dy: Vec<f32>,
+    critic_grad: Vec<f32>,
+    actor_grad: Vec<f32>,
+    head: Head,
+    y: Vec<f32>,
+}
+
+/// The tanh-Gaussian head on host memory: for actor outputs `[B, 2·act]` = [μ | raw log σ].
+#[derive(Debug, Default)]
+struct Head {
+    /// u = μ + σε.
+    u: Vec<f32>,
+    /// a = tanh(u).
+    a: Vec<f32>,
+    /// Clamped log σ.
+    log_std: Vec<f32>,
+    /// Whether raw log σ was inside the clamp (its gradient passes).
+    inside: Vec<bool>,
+    /// ln π(a|s) `[B]`.
+    log_prob: Vec<f32>,
+}
+
+impl Head {
+    /// [`tanh_gaussian`] on host memory, the same operations in the same order.
+    fn sample(&mut self, y: &[f32], eps: &[f32], rows: usize, act: usize, lo: f64, hi: f64) {
+        let n = rows * act;
+        for v in [&mut self.u, &mut self.a, &mut self.log_std] {
+            v.resize(n, 0.0);
+        }
+        self.inside.resize(n, false);
+        self.log_prob.resize(rows, 0.0);
+        let (lo32, hi32) = (lo as f32, hi as f32);
+        for r in 0..rows {
+            let mut lp = 0.0f32;
+            for j in 0..act {
+                let (i, mean, raw) = (r * act + j, y[r * 2 * act + j], y[r * 2 * act + act + j]);
+                let ls = raw.clamp(lo32, hi32);
+                self.inside[i] = f64::from(raw) >= lo && f64::from(raw) <= hi;
+                let u = mean + ls.exp() * eps[i];
+                self.u[i] = u;
+                self.a[i] = u.tanh();
+                self.log_std[i] = ls;
+                let gaussian = eps[i] * eps[i] * -0.5 - ls - HALF_LN_2PI as f32;
+                let log_det = (softplus(-u * 2.0) + u - std::f32::consts::LN_2) * 2.0;
+                lp += gaussian + log_det;
+            }
+            self.log_prob[r] = lp;
+        }
+    }
+}
+
+/// libtorch's softplus (β 1, threshold 20).
+fn softplus(x: f32) -> f32 {
+    if x > 20.0 { x } else { x.exp().ln_1p() }
+}
+
+/// Its derivative as libtorch's backward computes it.
+fn softplus_grad(x: f32) -> f32 {
+    if x > 20.0 {
+        1.0
+    } else {
+        let z = x.exp();
+        z / (z + 1.0)
+    }
+}
+
+/// `x = [left | right]` row by row.
+fn concat_rows(x: &mut Vec<f32>, left: &[f32], lw: usize, right: &[f32], rw: usize, rows: usize) {
+    x.resize(rows * (lw + rw), 0.0);
+    for (r, out) in x.chunks_exact_mut(lw + rw).enumerate() {
+        out[..lw].copy_from_slice(&left[r * lw..(r + 1) * lw]);
+        out[lw..].copy_from_slice(&right[r * rw..(r + 1) * rw]);
+    }
+}
+
+impl Sac {
+    /// One update through [`crate::cpu`]'s hand-written passes: the steps and equations of
+    /// [`Sac::update`]'s libtorch path (module docs), with the same noise draws, Adam and
+    /// clipping; results equal up to float rounding (`fused_update_matches_autograd`).
+    /// `None` (nothing done, no noise drawn) when a batch tensor is not plain host f32.
+    fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
+        let (Some(obs), Some(action), Some(reward), Some(next_obs), Some(terminal), Some(weights)) = (
+            host_slice(&b.obs),
+            host_slice(&b.action),
+            host_slice(&b.reward),
+            host_slice(&b.next_obs),
+            host_slice(&b.terminal),
+            host_slice(&b.weights),
+        ) else {
+            return Ok(None);
+        };
+        let (rows, o, na, h) = (b.rows(), self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
+        let k = CRITICS as usize;
+        let cw = o + na;
+        let eps_next_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
+        let eps_now_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
+        let (eps_next, eps_now) = (host_slice(&eps_next_t).expect("host noise"), host_slice(&eps_now_t).expect("host noise"));
+        let alpha = self.alpha();
+        let alpha32 = alpha as f32;
+        let (gamma, lo, hi) = (self.c.cfg.gamma as f32, self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
+        let clip = self.c.cfg.grad_clip_norm;
+        let actor_body = Body::single(o, h, 2 * na);
+        let bodies: Vec<Body> = (0..k).map(|j| Body::stacked(j, k, cw, h, 1)).collect();
+        let w = &mut self.host;
+        let ap = host_slice_mut(self.actor.net.flat()).expect("host parameters");
+        let cp = host_slice_mut(self.critic.net.flat()).expect("host parameters");
+        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+
+        // 1. Targets, eq. 9: y = r + γ(1 − terminal)(min_k Q_tk(s′, ã′) − α ln π(ã′|s′)).
+        actor_body.forward(ap, next_obs, rows, &mut w.actor);
+        w.head.sample(&w.actor.y, eps_next, rows, na, lo, hi);
+        concat_rows(&mut w.x, next_obs, o, &w.head.a, na, rows);
+        for (body, acts) in bodies.iter().zip(w.critics.iter_mut()) {
+            body.forward(tp, &w.x, rows, acts);
+        }
+        w.y.resize(rows, 0.0);
+        for i in 0..rows {
+            let q = w.critics[0].y[i].min(w.critics[1].y[i]);
+            let soft = q - w.head.log_prob[i] * alpha32;
+            w.y[i] = reward[i] + (1.0 - terminal[i]) * soft * gamma;
+        }
+
+        // 2. Critics, eq. 6: L = Σ_k (1/M) Σᵢ wᵢ (yᵢ − Q_k)², one step on both.
+        concat_rows(&mut w.x, obs, o, action, na, rows);
+        let mut loss = 0.0f64;
+        let mut q_sum = 0.0f64;
+        let mut td_errors = vec![0.0f32; rows];
+        for (j, (body, acts)) in bodies.iter().zip(w.critics.iter_mut()).enumerate() {
+            body.forward(cp, &w.x, rows, acts);
+            w.dq[j].resize(rows, 0.0);
+            for i in 0..rows {
+                let td = acts.y[i] - w.y[i];
+                loss += f64::from(td * td * weights[i]);
+                q_sum += f64::from(acts.y[i]);
+                w.dq[j][i] = 2.0 * weights[i] * td / rows as f32;
+                td_errors[i] += td.abs() / k as f32;
+            }
+        }
+        let loss = loss / rows as f64;
+        if !loss.is_finite() {
+            return Err(LearnerError::NonFiniteLoss { what: metric::CRITIC_LOSS, value: loss, update: self.c.updates });
+        }
+        w.critic_grad.clear();
+        w.critic_grad.resize(cp.len(), 0.0);
+        for (j, body) in bodies.iter().enumerate() {
+            body.backward(cp, &w.x, &w.critics[j], &w.dq[j], Some(&mut w.critic_grad), None, &mut w.scratch);
+        }
+        let critic_norm = clip.map(|c| crate::cpu::clip_grad_norm(&mut w.critic_grad, c));
+        self.critic.opt.step_host(cp, &w.critic_grad);
+        let q_mean = q_sum / (k * rows) as f64;
+        let target_mean = w.y.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
+
+        // 3. Actor, eq. 11, against the critics just updated: J = mean(α ln π − min_k Q_k).
+        actor_body.forward(ap, obs, rows, &mut w.actor);
+        w.head.sample(&w.actor.y, eps_now, rows, na, lo, hi);
+        concat_rows(&mut w.x, obs, o, &w.head.a, na, rows);
+        for (body, acts) in bodies.iter().zip(w.critics.iter_mut()) {
+            body.forward(cp, &w.x, rows, acts);
+        }
+        let mut actor_loss = 0.0f64;
+        let inv = 1.0 / rows as f32;
+        for i in 0..rows {
+            let (q0, q1) = (w.critics[0].y[i], w.critics[1].y[i]);
+            let q = q0.min(q1);
+            actor_loss += f64::from(w.head.log_prob[i] * alpha32 - q);
+            // amin's backward shares the gradient evenly between tied minima.
+            let (g0, g1) = if q0 < q1 { (-inv, 0.0) } else if q1 < q0 { (0.0, -inv) } else { (-inv / 2.0, -inv / 2.0) };
+            w.dq[0][i] = g0;
+            w.dq[1][i] = g1;
+        }
+        let actor_loss = actor_loss / rows as f64;
+        if !actor_loss.is_finite() {
+            return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: actor_loss, update: self.c.updates });
+        }
+        // ∂J/∂a through both critics (no critic weight gradient).
+        w.da.clear();
+        w.da.resize(rows * na, 0.0);
+        w.dx.resize(rows * cw, 0.0);
+        for (j, body) in bodies.iter().enumerate() {
+            body.backward(cp, &w.x, &w.critics[j], &w.dq[j], None, Some(&mut w.dx), &mut w.scratch);
+            for i in 0..rows {
+                for c in 0..na {
+                    w.da[i * na + c] += w.dx[i * cw + o + c];
+                }
+            }
+        }
+        // Through the head: a = tanh(u), u = μ + σε, ln π = Σ −½ε² − ln σ − ½ln 2π + 2(softplus(−2u) + u − ln 2).
+        let dlogp = alpha32 * inv;
+        w.dy.resize(rows * 2 * na, 0.0);
+        for i in 0..rows {
+            for c in 0..na {
+                let n = i * na + c;
+                let (u, a) = (w.head.u[n], w.head.a[n]);
+                let dlogdet_du = 2.0 * (1.0 - 2.0 * softplus_grad(-u * 2.0));
+                let du = w.da[n] * (1.0 - a * a) + dlogp * dlogdet_du;
+                let dls = du * eps_now[n] * w.head.log_std[n].exp() - dlogp;
+                w.dy[i * 2 * na + c] = du;
+                w.dy[i * 2 * na + na + c] = if w.head.inside[n] { dls } else { 0.0 };
+            }
+        }
+        w.actor_grad.clear();
+        w.actor_grad.resize(ap.len(), 0.0);
+        actor_body.backward(ap, obs, &w.actor, &w.dy, Some(&mut w.actor_grad), None, &mut w.scratch);
+        let actor_norm = clip.map(|c| crate::cpu::clip_grad_norm(&mut w.actor_grad, c));
+        self.actor.opt.step_host(ap, &w.actor_grad);
+
+        // 4. α, eq. 10, and the targets: as the libtorch path.
+        let mean_log_prob = w.head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
+        let alpha_loss = -alpha * (mean_log_prob + self.target_entropy);
+        if self.c.cfg.sac.autotune_alpha {
+            let grad = Tensor::from_slice(&[alpha_loss as f32]);
+            self.log_alpha.opt.step(self.log_alpha.net.flat(), &grad);
+        }
+        self.target_critic.soft_update_from(&self.critic.net, self.c.cfg.tau);
+        self.c.updates += 1;
+
+        let mut scalars = vec![
+            (metric::CRITIC_LOSS, loss),
+            (metric::ACTOR_LOSS, actor_loss),
+            (metric::ALPHA_LOSS, alpha_loss),
+            (metric::Q_MEAN, q_mean),
+            (metric::TARGET_MEAN, target_mean),
+            (metric::ALPHA, alpha),
+            (metric::ENTROPY, -mean_log_prob),
+        ];
+        scalars.extend(critic_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
+        scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
+        Ok(Some(UpdateStats { scalars, td_errors }))
+    }
 }

@@ -1,0 +1,359 @@
+//! Hand-written CPU kernels for the fused update path ([`crate::algo::sac`]'s
+//! `fused_update`): row-major matrix products through the BLAS that libtorch itself calls
+//! (`sgemm_`, MKL in the PyPI wheels), two-hidden-layer ReLU bodies with their backward
+//! passes written out, and Adam on raw slices.
+//!
+//! Why: at the paper's sizes an update is ~286 MFLOP of products, but through autograd it
+//! also pays ~200 dispatched operations, their allocations and the graph — about as much
+//! time again (`mapless bench learner` prints the products' ceiling and the share reached).
+//! Here every layer is one `sgemm` into a reused buffer, and bias, ReLU, its mask and the
+//! optimiser are single fused loops.
+//!
+//! Layouts are those of [`crate::nets`]: PyTorch's `[out, in]` for [`mlp_specs`] networks
+//! (the actor) and input-major `[k, in, out]` stacks for [`stacked_mlp_specs`] (the critics).
+//!
+//! [`mlp_specs`]: crate::nets::mlp_specs
+//! [`stacked_mlp_specs`]: crate::nets::stacked_mlp_specs
+
+use std::os::raw::{c_char, c_int};
+
+use tch::Tensor;
+
+unsafe extern "C" {
+    /// BLAS single-precision GEMM, Fortran (column-major) interface, LP64 integers; exported
+    /// by `libtorch_cpu.so` (MKL) and resolved at link time like every libtorch symbol.
+    fn sgemm_(
+        transa: *const c_char,
+        transb: *const c_char,
+        m: *const c_int,
+        n: *const c_int,
+        k: *const c_int,
+        alpha: *const f32,
+        a: *const f32,
+        lda: *const c_int,
+        b: *const f32,
+        ldb: *const c_int,
+        beta: *const f32,
+        c: *mut f32,
+        ldc: *const c_int,
+    );
+}
+
+/// Row-major `C[m, n] = op(A)·op(B) + beta·C`, `op(A)` `[m, k]` (A stored `[k, m]` when
+/// `ta`), `op(B)` `[k, n]` (B stored `[n, k]` when `tb`). Panics if a slice is too short —
+/// a bug in the caller's sizes, never a data-dependent condition.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm(ta: bool, tb: bool, m: usize, n: usize, k: usize, a: &[f32], b: &[f32], beta: f32, c: &mut [f32]) {
+    assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n, "gemm sizes");
+    if m == 0 || n == 0 {
+        return;
+    }
+    if k == 0 {
+        c[..m * n].iter_mut().for_each(|v| *v *= beta);
+        return;
+    }
+    // Row-major C is column-major Cᵀ = op(B)ᵀ·op(A)ᵀ: swap the operands.
+    let (ta_f, lda_f) = if tb { (b'T', k) } else { (b'N', n) };
+    let (tb_f, ldb_f) = if ta { (b'T', m) } else { (b'N', k) };
+    let dims = [n, m, k, lda_f, ldb_f, n].map(|v| c_int::try_from(v).expect("gemm dimension fits in i32"));
+    let alpha = 1.0f32;
+    // SAFETY: the pointers come from slices at least as long as the asserted sizes, the
+    // scalars live on this stack frame, and sgemm_ reads/writes only within those bounds.
+    unsafe {
+        sgemm_(
+            (&ta_f as *const u8).cast(),
+            (&tb_f as *const u8).cast(),
+            &dims[0],
+            &dims[1],
+            &dims[2],
+            &alpha,
+            b.as_ptr(),
+            &dims[3],
+            a.as_ptr(),
+            &dims[4],
+            &beta,
+            c.as_mut_ptr(),
+            &dims[5],
+        );
+    }
+}
+
+/// Where a network's tensors sit in its flat buffer, and how its weights are laid out.
+#[derive(Debug, Clone, Copy)]
+pub struct Body {
+    /// (weight offset, bias offset) of l0, l1, out.
+    off: [(usize, usize); 3],
+    dims: [(usize, usize); 3],
+    /// `[out, in]` (PyTorch, the actor) rather than `[in, out]` (the critic stacks).
+    out_major: bool,
+}
+
+impl Body {
+    /// Network `j` of a [`crate::nets::stacked_mlp_specs`] stack of `k`.
+    pub fn stacked(j: usize, k: usize, input: usize, hidden: usize, output: usize) -> Self {
+        let dims = [(input, hidden), (hidden, hidden), (hidden, output)];
+        let mut off = [(0, 0); 3];
+        let mut at = 0;
+        for (l, &(i, o)) in dims.iter().enumerate() {
+            off[l].0 = at + j * i * o;
+            at += k * i * o;
+            off[l].1 = at + j * o;
+            at += k * o;
+        }
+        Self { off, dims, out_major: false }
+    }
+
+    /// A [`crate::nets::mlp_specs`] network.
+    pub fn single(input: usize, hidden: usize, output: usize) -> Self {
+        let dims = [(input, hidden), (hidden, hidden), (hidden, output)];
+        let mut off = [(0, 0); 3];
+        let mut at = 0;
+        for (l, &(i, o)) in dims.iter().enumerate() {
+            off[l] = (at, at + i * o);
+            at += i * o + o;
+        }
+        Self { off, dims, out_major: true }
+    }
+
+    pub fn hidden(&self) -> usize {
+        self.dims[1].0
+    }
+
+    pub fn output(&self) -> usize {
+        self.dims[2].1
+    }
+
+    /// `z[rows, o] = x·W + b` for layer `l`.
+    fn layer(&self, l: usize, p: &[f32], x: &[f32], rows: usize, z: &mut [f32]) {
+        let ((wo, bo), (i, o)) = (self.off[l], self.dims[l]);
+        let (w, b) = (&p[wo..wo + i * o], &p[bo..bo + o]);
+        for r in z[..rows * o].chunks_exact_mut(o) {
+            r.copy_from_slice(b);
+        }
+        gemm(false, self.out_major, rows, o, i, x, w, 1.0, z);
+    }
+
+    /// Forward pass over `rows` rows of `x` (`[rows, input]`), keeping the activations.
+    pub fn forward(&self, p: &[f32], x: &[f32], rows: usize, act: &mut Acts) {
+        act.resize(rows, self);
+        self.layer(0, p, x, rows, &mut act.h1);
+        relu(&mut act.h1);
+        self.layer(1, p, &act.h1, rows, &mut act.h2);
+        relu(&mut act.h2);
+        self.layer(2, p, &act.h2, rows, &mut act.y);
+    }
+
+    /// Backward pass from `dy` (`[rows, output]`, ∂L/∂y) through the activations of the
+    /// last [`Body::forward`] on `x`. Weight and bias gradients are *added* to `grad` (same
+    /// layout as the parameters) when it is given; ∂L/∂x is written to `dx` when given.
+    /// `scratch` holds the hidden-layer gradients.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward(
+        &self,
+        p: &[f32],
+        x: &[f32],
+        act: &Acts,
+        dy: &[f32],
+        grad: Option<&mut [f32]>,
+        dx: Option<&mut [f32]>,
+        scratch: &mut Scratch,
+    ) {
+        let rows = act.rows;
+        let h = self.hidden();
+        scratch.d2.resize(rows * h, 0.0);
+        scratch.d1.resize(rows * h, 0.0);
+        let mut grad = grad;
+        // out: dh2 = dy·Woutᵀ, masked by ReLU(h2) > 0.
+        self.weight_grads(2, &act.h2, dy, rows, grad.as_deref_mut());
+        self.input_grad(2, p, dy, rows, &mut scratch.d2);
+        mask(&mut scratch.d2, &act.h2);
+        self.weight_grads(1, &act.h1, &scratch.d2, rows, grad.as_deref_mut());
+        self.input_grad(1, p, &scratch.d2, rows, &mut scratch.d1);
+        mask(&mut scratch.d1, &act.h1);
+        self.weight_grads(0, x, &scratch.d1, rows, grad);
+        if let Some(dx) = dx {
+            self.input_grad(0, p, &scratch.d1, rows, dx);
+        }
+    }
+
+    /// Adds ∂L/∂W and ∂L/∂b of layer `l` (input `x`, output gradient `dz`) into `grad`.
+    fn weight_grads(&self, l: usize, x: &[f32], dz: &[f32], rows: usize, grad: Option<&mut [f32]>) {
+        let Some(grad) = grad else { return };
+        let ((wo, bo), (i, o)) = (self.off[l], self.dims[l]);
+        if self.out_major {
+            gemm(true, false, o, i, rows, dz, x, 1.0, &mut grad[wo..wo + i * o]);
+        } else {
+            gemm(true, false, i, o, rows, x, dz, 1.0, &mut grad[wo..wo + i * o]);
+        }
+        let gb = &mut grad[bo..bo + o];
+        for r in dz[..rows * o].chunks_exact(o) {
+            for (g, d) in gb.iter_mut().zip(r) {
+                *g += d;
+            }
+        }
+    }
+
+    /// `dx[rows, in] = dz·Wᵀ` for layer `l`.
+    fn input_grad(&self, l: usize, p: &[f32], dz: &[f32], rows: usize, dx: &mut [f32]) {
+        let (wo, (i, o)) = (self.off[l].0, self.dims[l]);
+        gemm(false, !self.out_major, rows, i, o, dz, &p[wo..wo + i * o], 0.0, dx);
+    }
+}
+
+/// Activations of one forward pass: `h1`, `h2` after ReLU, the output `y`.
+#[derive(Debug, Default)]
+pub struct Acts {
+    pub rows: usize,
+    pub h1: Vec<f32>,
+    pub h2: Vec<f32>,
+    pub y: Vec<f32>,
+}
+
+impl Acts {
+    fn resize(&mut self, rows: usize, body: &Body) {
+        self.rows = rows;
+        self.h1.resize(rows * body.hidden(), 0.0);
+        self.h2.resize(rows * body.hidden(), 0.0);
+        self.y.resize(rows * body.output(), 0.0);
+    }
+}
+
+/// Reused hidden-layer gradient buffers.
+#[derive(Debug, Default)]
+pub struct Scratch {
+    d1: Vec<f32>,
+    d2: Vec<f32>,
+}
+
+fn relu(v: &mut [f32]) {
+    for x in v {
+        *x = x.max(0.0);
+    }
+}
+
+/// ReLU's backward (`threshold_backward`): zero the gradient where the output was ≤ 0.
+fn mask(d: &mut [f32], out: &[f32]) {
+    // A select, not a conditional store, so that it vectorises.
+    for (g, &o) in d.iter_mut().zip(out) {
+        *g = if o > 0.0 { *g } else { 0.0 };
+    }
+}
+
+/// The f32 contents of a contiguous CPU tensor, or `None` for anything else.
+pub fn host_slice(t: &Tensor) -> Option<&[f32]> {
+    if t.device() != tch::Device::Cpu || t.kind() != tch::Kind::Float || !t.is_contiguous() {
+        return None;
+    }
+    let n = t.numel();
+    // SAFETY: a contiguous CPU f32 tensor holds `numel` floats at `data_ptr`, alive while
+    // `t` is borrowed.
+    Some(unsafe { std::slice::from_raw_parts(t.data_ptr() as *const f32, n) })
+}
+
+/// Mutable f32 contents of a contiguous CPU tensor. The caller must hold the only live view
+/// of these bytes for the borrow's duration (the fused path owns its parameter buffers).
+#[allow(clippy::mut_from_ref)]
+pub fn host_slice_mut(t: &Tensor) -> Option<&mut [f32]> {
+    if t.device() != tch::Device::Cpu || t.kind() != tch::Kind::Float || !t.is_contiguous() {
+        return None;
+    }
+    let n = t.numel();
+    // SAFETY: as in `host_slice`; exclusivity is the caller's obligation (see above).
+    Some(unsafe { std::slice::from_raw_parts_mut(t.data_ptr() as *mut f32, n) })
+}
+
+/// Global L2 norm of `g`, and `g` scaled to `max_norm` when above it — what
+/// [`crate::optim::clip_grad_norm`] does to a tensor.
+pub fn clip_grad_norm(g: &mut [f32], max_norm: f64) -> f64 {
+    let norm = g.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>().sqrt();
+    let coef = max_norm / (norm + 1e-6);
+    if coef < 1.0 {
+        let c = coef as f32;
+        g.iter_mut().for_each(|v| *v *= c);
+    }
+    norm
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_forward, stacked_mlp_specs};
+    use rand::SeedableRng;
+
+    fn close(a: &[f32], b: &[f32], tol: f32) {
+        assert_eq!(a.len(), b.len());
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!((x - y).abs() <= tol * (1.0 + y.abs()), "[{i}] {x} vs {y}");
+        }
+    }
+
+    #[test]
+    fn gemm_matches_libtorch_in_every_transpose() {
+        let (m, n, k) = (5usize, 3usize, 4usize);
+        let t = |r: usize, c: usize, s: f32| {
+            Tensor::from_slice(&(0..r * c).map(|i| (i as f32 * s).sin()).collect::<Vec<_>>()).view([r as i64, c as i64])
+        };
+        for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
+            let a = if ta { t(k, m, 0.7) } else { t(m, k, 0.7) };
+            let b = if tb { t(n, k, 1.3) } else { t(k, n, 1.3) };
+            let want = (if ta { a.tr() } else { a.shallow_clone() }).mm(&if tb { b.tr() } else { b.shallow_clone() });
+            let mut c = vec![1.0f32; m * n];
+            gemm(ta, tb, m, n, k, host_slice(&a).unwrap(), host_slice(&b).unwrap(), 1.0, &mut c);
+            let want: Vec<f32> = Vec::try_from(&(want + 1.0).reshape([-1])).unwrap();
+            close(&c, &want, 1e-5);
+        }
+    }
+
+    #[test]
+    fn forward_and_backward_match_autograd_for_both_layouts() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let (rows, input, hidden) = (6usize, 5usize, 8usize);
+        let x = Tensor::from_slice(&(0..rows * input).map(|i| (i as f32 * 0.37).cos()).collect::<Vec<_>>())
+            .view([rows as i64, input as i64])
+            .set_requires_grad(true);
+        let dy_of = |o: usize| (0..rows * o).map(|i| (i as f32 * 0.11).sin()).collect::<Vec<f32>>();
+        // The actor layout.
+        let set = ParamSet::new(mlp_specs("a", input as i64, hidden as i64, 3, &mut rng), tch::Device::Cpu).unwrap();
+        let body = Body::single(input, hidden, 3);
+        // The second network of a two-network critic stack.
+        let stack = ParamSet::new(stacked_mlp_specs("c", 2, input as i64, hidden as i64, 1, &mut rng), tch::Device::Cpu).unwrap();
+        let second = Body::stacked(1, 2, input, hidden, 1);
+        for (set, body, pick) in [(&set, body, None), (&stack, second, Some(1i64))] {
+            let y = match pick {
+                None => mlp_forward(set.params(), &x),
+                Some(j) => stacked_mlp_forward(set.params(), &x, true).get(j),
+            };
+            let o = body.output();
+            let dy = dy_of(o);
+            let loss = (&y * Tensor::from_slice(&dy).view([rows as i64, o as i64])).sum(None);
+            let mut inputs: Vec<&Tensor> = set.params().iter().collect();
+            inputs.push(&x);
+            let grads = Tensor::run_backward(&[loss], &inputs, false, false);
+            let want_grad: Vec<f32> = Vec::try_from(&ParamSet::flat_grad(&grads[..grads.len() - 1])).unwrap();
+            let want_dx: Vec<f32> = Vec::try_from(&grads[grads.len() - 1].reshape([-1])).unwrap();
+
+            let p = host_slice(set.flat()).unwrap();
+            let xs: Vec<f32> = Vec::try_from(&x.detach().reshape([-1])).unwrap();
+            let mut act = Acts::default();
+            body.forward(p, &xs, rows, &mut act);
+            let want_y: Vec<f32> = Vec::try_from(&y.detach().reshape([-1])).unwrap();
+            close(&act.y, &want_y, 1e-5);
+            let mut grad = vec![0.0f32; p.len()];
+            let mut dx = vec![0.0f32; rows * input];
+            body.backward(p, &xs, &act, &dy, Some(&mut grad), Some(&mut dx), &mut Scratch::default());
+            close(&dx, &want_dx, 1e-5);
+            // The stack's other network gets no gradient from network 1's output.
+            close(&grad, &want_grad, 1e-5);
+        }
+    }
+
+    #[test]
+    fn clipping_matches_the_tensor_version() {
+        let mut g = vec![3.0f32, 4.0];
+        assert!((clip_grad_norm(&mut g, 1.0) - 5.0).abs() < 1e-9);
+        close(&g, &[0.6, 0.8], 1e-6);
+        let mut small = vec![0.3f32, 0.4];
+        clip_grad_norm(&mut small, 1.0);
+        assert_eq!(small, vec![0.3, 0.4]);
+    }
+}
