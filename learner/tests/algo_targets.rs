@@ -596,18 +596,24 @@ fn bad_batches_and_observations_are_errors_not_panics() {
     assert_eq!(agent.updates(), 0);
 }
 
-/// SAC's fused CPU update (`fused_update`, hand-written backward passes) against the
-/// libtorch autograd path: same seeds, same batches (terminal rows, prioritised-replay
-/// weights), several updates; every network, target, Adam moment, log α, the reported
-/// scalars and the TD errors agree up to float rounding. Run once with the default log σ
-/// clamp and once with a clamp narrow enough that some rows hit it (its gradient is cut).
+/// Each algorithm's fused CPU update (`fused_update`, hand-written backward passes) against
+/// the libtorch autograd path: same seeds, same batches (terminal rows, prioritised-replay
+/// weights), six updates (three of TD3's delayed actor steps); every network, target, Adam
+/// moment, log α, the reported scalars and the TD errors agree up to float rounding. SAC runs
+/// once with the default log σ clamp and once with a clamp narrow enough that some rows hit
+/// it (its gradient is cut).
 #[test]
-fn sac_fused_update_matches_autograd() {
-    for log_std_max in [2.0, 0.02] {
+fn fused_updates_match_autograd() {
+    for (kind, log_std_max) in [
+        (AlgorithmKind::Sac, 2.0),
+        (AlgorithmKind::Sac, 0.02),
+        (AlgorithmKind::Td3, 2.0),
+        (AlgorithmKind::Ddpg, 2.0),
+    ] {
         let (obs, act, rows) = (5usize, 2usize, 24usize);
         let make = |fused: bool| {
             let mut c = LearnerConfig {
-                algorithm: AlgorithmKind::Sac,
+                algorithm: kind,
                 hidden_width: 32,
                 seed: 11,
                 tau: 0.05,
@@ -656,7 +662,7 @@ fn sac_fused_update_matches_autograd() {
             assert_eq!(sf.scalars.len(), sa.scalars.len());
             for ((nf, vf), (na, va)) in sf.scalars.iter().zip(&sa.scalars) {
                 assert_eq!(nf, na);
-                assert!((vf - va).abs() <= 1e-6 * (1.0 + va.abs()), "step {step} {nf}: {vf} vs {va}");
+                assert!((vf - va).abs() <= 1e-6 * (1.0 + va.abs()), "{kind:?} step {step} {nf}: {vf} vs {va}");
             }
             let (tf, ta): (Vec<f64>, Vec<f64>) = (
                 sf.td_errors.iter().map(|&v| f64::from(v)).collect(),
@@ -674,10 +680,10 @@ fn sac_fused_update_matches_autograd() {
                 if d > worst.0 {
                     worst = (d, format!("{name}[{i}]"));
                 }
-                assert!(d <= 1e-6, "{name}[{i}]: {g} vs {w} (log σ max {log_std_max})");
+                assert!(d <= 1e-6, "{kind:?} {name}[{i}]: {g} vs {w} (log σ max {log_std_max})");
             }
         }
-        eprintln!("log σ max {log_std_max}: largest relative difference {:.2e} at {}", worst.0, worst.1);
+        eprintln!("{kind:?} (log σ max {log_std_max}): largest relative difference {:.2e} at {}", worst.0, worst.1);
         // The updates moved the networks: the comparison is not of two untouched copies.
         let fresh = state(&make(true));
         assert!(fresh["actor.l1.weight"] != sf["actor.l1.weight"]);

@@ -47,6 +47,7 @@
 //! `losses/*`, `charts/*` namespaces) and the per-row |TD error| for prioritised replay.
 
 pub mod ddpg;
+mod fused;
 pub mod sac;
 pub mod td3;
 

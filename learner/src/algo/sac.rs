@@ -40,10 +40,10 @@
 
 use tch::Tensor;
 
-use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, finite, metric};
+use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, finite, fused, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
-use crate::cpu::{Acts, Body, Scratch, host_slice, host_slice_mut};
+use crate::cpu::{Body, host_slice};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -66,7 +66,7 @@ pub struct Sac {
     /// Buffers of the fused CPU update ([`LearnerConfig::fused_update`]), reused every step.
     ///
     /// [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
-    host: HostWork,
+    host: (fused::Work, Head),
 }
 
 /// A sampled tanh-Gaussian action and its log-density.
@@ -102,7 +102,7 @@ impl Sac {
             log_alpha: Trained::new(log_alpha, c.cfg.sac.alpha_lr, &c),
             target_critic,
             target_entropy,
-            host: HostWork::default(),
+            host: Default::default(),
             c,
         })
     }
@@ -290,28 +290,6 @@ pub fn tanh_gaussian(mean: &Tensor, log_std: &Tensor, eps: &Tensor) -> Sample {
 // The fused CPU update: the same steps 1–4, backward passes written out.
 // ---------------------------------------------------------------------------------------------
 
-/// Reused buffers of [`Sac::update_host`].
-#[derive(Debug, Default)]
-struct HostWork {
-    /// Critic input `[B, obs + act]`.
-    x: Vec<f32>,
-    actor: Acts,
-    critics: [Acts; 2],
-    scratch: Scratch,
-    /// Per critic: ∂L/∂Q `[B]`.
-    dq: [Vec<f32>; 2],
-    /// ∂L/∂x through one critic `[B, obs + act]`.
-    dx: Vec<f32>,
-    /// ∂L/∂a summed over critics `[B, act]`.
-    da: Vec<f32>,
-    /// ∂L/∂(actor output) `[B, 2·act]`.
-    dy: Vec<f32>,
-    critic_grad: Vec<f32>,
-    actor_grad: Vec<f32>,
-    head: Head,
-    y: Vec<f32>,
-}
-
 /// The tanh-Gaussian head on host memory: for actor outputs `[B, 2·act]` = [μ | raw log σ].
 #[derive(Debug, Default)]
 struct Head {
@@ -371,148 +349,72 @@ fn softplus_grad(x: f32) -> f32 {
     }
 }
 
-/// `x = [left | right]` row by row.
-fn concat_rows(x: &mut Vec<f32>, left: &[f32], lw: usize, right: &[f32], rw: usize, rows: usize) {
-    x.resize(rows * (lw + rw), 0.0);
-    for (r, out) in x.chunks_exact_mut(lw + rw).enumerate() {
-        out[..lw].copy_from_slice(&left[r * lw..(r + 1) * lw]);
-        out[lw..].copy_from_slice(&right[r * rw..(r + 1) * rw]);
-    }
-}
-
 impl Sac {
     /// One update through [`crate::cpu`]'s hand-written passes: the steps and equations of
     /// [`Sac::update`]'s libtorch path (module docs), with the same noise draws, Adam and
     /// clipping; results equal up to float rounding (`fused_update_matches_autograd`).
     /// `None` (nothing done, no noise drawn) when a batch tensor is not plain host f32.
     fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
-        let (Some(obs), Some(action), Some(reward), Some(next_obs), Some(terminal), Some(weights)) = (
-            host_slice(&b.obs),
-            host_slice(&b.action),
-            host_slice(&b.reward),
-            host_slice(&b.next_obs),
-            host_slice(&b.terminal),
-            host_slice(&b.weights),
-        ) else {
+        let Some(b) = fused::batch(b) else {
             return Ok(None);
         };
-        let (rows, o, na, h) = (b.rows(), self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
-        let k = CRITICS as usize;
-        let cw = o + na;
+        let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
         let eps_next_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
         let eps_now_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
         let (eps_next, eps_now) = (host_slice(&eps_next_t).expect("host noise"), host_slice(&eps_now_t).expect("host noise"));
         let alpha = self.alpha();
         let alpha32 = alpha as f32;
-        let (gamma, lo, hi) = (self.c.cfg.gamma as f32, self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
+        let (lo, hi) = (self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, 2 * na);
-        let bodies: Vec<Body> = (0..k).map(|j| Body::stacked(j, k, cw, h, 1)).collect();
-        let w = &mut self.host;
-        let ap = host_slice_mut(self.actor.net.flat()).expect("host parameters");
-        let cp = host_slice_mut(self.critic.net.flat()).expect("host parameters");
-        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+        let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
+        let (w, head) = (&mut self.host.0, &mut self.host.1);
 
         // 1. Targets, eq. 9: y = r + γ(1 − terminal)(min_k Q_tk(s′, ã′) − α ln π(ã′|s′)).
-        actor_body.forward(ap, next_obs, rows, &mut w.actor);
-        w.head.sample(&w.actor.y, eps_next, rows, na, lo, hi);
-        concat_rows(&mut w.x, next_obs, o, &w.head.a, na, rows);
-        for (body, acts) in bodies.iter().zip(w.critics.iter_mut()) {
-            body.forward(tp, &w.x, rows, acts);
-        }
-        w.y.resize(rows, 0.0);
-        for i in 0..rows {
-            let q = w.critics[0].y[i].min(w.critics[1].y[i]);
-            let soft = q - w.head.log_prob[i] * alpha32;
-            w.y[i] = reward[i] + (1.0 - terminal[i]) * soft * gamma;
-        }
+        actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.next_obs, rows, &mut w.actor);
+        head.sample(&w.actor.y, eps_next, rows, na, lo, hi);
+        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+        w.critics_forward(&bodies, tp, b.next_obs, &head.a, na, rows);
+        w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i) - head.log_prob[i] * alpha32);
 
-        // 2. Critics, eq. 6: L = Σ_k (1/M) Σᵢ wᵢ (yᵢ − Q_k)², one step on both.
-        concat_rows(&mut w.x, obs, o, action, na, rows);
-        let mut loss = 0.0f64;
-        let mut q_sum = 0.0f64;
-        let mut td_errors = vec![0.0f32; rows];
-        for (j, (body, acts)) in bodies.iter().zip(w.critics.iter_mut()).enumerate() {
-            body.forward(cp, &w.x, rows, acts);
-            w.dq[j].resize(rows, 0.0);
-            for i in 0..rows {
-                let td = acts.y[i] - w.y[i];
-                loss += f64::from(td * td * weights[i]);
-                q_sum += f64::from(acts.y[i]);
-                w.dq[j][i] = 2.0 * weights[i] * td / rows as f32;
-                td_errors[i] += td.abs() / k as f32;
-            }
-        }
-        let loss = loss / rows as f64;
-        if !loss.is_finite() {
-            return Err(LearnerError::NonFiniteLoss { what: metric::CRITIC_LOSS, value: loss, update: self.c.updates });
-        }
-        w.critic_grad.clear();
-        w.critic_grad.resize(cp.len(), 0.0);
-        for (j, body) in bodies.iter().enumerate() {
-            body.backward(cp, &w.x, &w.critics[j], &w.dq[j], Some(&mut w.critic_grad), None, &mut w.scratch);
-        }
-        let critic_norm = clip.map(|c| crate::cpu::clip_grad_norm(&mut w.critic_grad, c));
-        self.critic.opt.step_host(cp, &w.critic_grad);
-        let q_mean = q_sum / (k * rows) as f64;
-        let target_mean = w.y.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
+        // 2. Critics, eq. 6.
+        let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
 
         // 3. Actor, eq. 11, against the critics just updated: J = mean(α ln π − min_k Q_k).
-        actor_body.forward(ap, obs, rows, &mut w.actor);
-        w.head.sample(&w.actor.y, eps_now, rows, na, lo, hi);
-        concat_rows(&mut w.x, obs, o, &w.head.a, na, rows);
-        for (body, acts) in bodies.iter().zip(w.critics.iter_mut()) {
-            body.forward(cp, &w.x, rows, acts);
-        }
+        actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.obs, rows, &mut w.actor);
+        head.sample(&w.actor.y, eps_now, rows, na, lo, hi);
+        let cp = host_slice(self.critic.net.flat()).expect("host parameters");
+        w.critics_forward(&bodies, cp, b.obs, &head.a, na, rows);
         let mut actor_loss = 0.0f64;
-        let inv = 1.0 / rows as f32;
         for i in 0..rows {
-            let (q0, q1) = (w.critics[0].y[i], w.critics[1].y[i]);
-            let q = q0.min(q1);
-            actor_loss += f64::from(w.head.log_prob[i] * alpha32 - q);
-            // amin's backward shares the gradient evenly between tied minima.
-            let (g0, g1) = if q0 < q1 { (-inv, 0.0) } else if q1 < q0 { (0.0, -inv) } else { (-inv / 2.0, -inv / 2.0) };
-            w.dq[0][i] = g0;
-            w.dq[1][i] = g1;
+            actor_loss += f64::from(head.log_prob[i] * alpha32 - w.min_q(i));
         }
         let actor_loss = actor_loss / rows as f64;
         if !actor_loss.is_finite() {
             return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: actor_loss, update: self.c.updates });
         }
-        // ∂J/∂a through both critics (no critic weight gradient).
-        w.da.clear();
-        w.da.resize(rows * na, 0.0);
-        w.dx.resize(rows * cw, 0.0);
-        for (j, body) in bodies.iter().enumerate() {
-            body.backward(cp, &w.x, &w.critics[j], &w.dq[j], None, Some(&mut w.dx), &mut w.scratch);
-            for i in 0..rows {
-                for c in 0..na {
-                    w.da[i * na + c] += w.dx[i * cw + o + c];
-                }
-            }
-        }
-        // Through the head: a = tanh(u), u = μ + σε, ln π = Σ −½ε² − ln σ − ½ln 2π + 2(softplus(−2u) + u − ln 2).
-        let dlogp = alpha32 * inv;
+        w.min_q_action_grad(&bodies, cp, o, na, rows);
+        // Through the head: a = tanh(u), u = μ + σε,
+        // ln π = Σ −½ε² − ln σ − ½ln 2π + 2(softplus(−2u) + u − ln 2).
+        let dlogp = alpha32 / rows as f32;
         w.dy.resize(rows * 2 * na, 0.0);
         for i in 0..rows {
             for c in 0..na {
                 let n = i * na + c;
-                let (u, a) = (w.head.u[n], w.head.a[n]);
+                let (u, a) = (head.u[n], head.a[n]);
                 let dlogdet_du = 2.0 * (1.0 - 2.0 * softplus_grad(-u * 2.0));
                 let du = w.da[n] * (1.0 - a * a) + dlogp * dlogdet_du;
-                let dls = du * eps_now[n] * w.head.log_std[n].exp() - dlogp;
+                let dls = du * eps_now[n] * head.log_std[n].exp() - dlogp;
                 w.dy[i * 2 * na + c] = du;
-                w.dy[i * 2 * na + na + c] = if w.head.inside[n] { dls } else { 0.0 };
+                w.dy[i * 2 * na + na + c] = if head.inside[n] { dls } else { 0.0 };
             }
         }
-        w.actor_grad.clear();
-        w.actor_grad.resize(ap.len(), 0.0);
-        actor_body.backward(ap, obs, &w.actor, &w.dy, Some(&mut w.actor_grad), None, &mut w.scratch);
-        let actor_norm = clip.map(|c| crate::cpu::clip_grad_norm(&mut w.actor_grad, c));
-        self.actor.opt.step_host(ap, &w.actor_grad);
+        let actor_norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
+        let (loss, q_mean, target_mean, critic_norm, td_errors) =
+            (critic.loss, critic.q_mean, critic.target_mean, critic.grad_norm, critic.td_errors);
 
         // 4. α, eq. 10, and the targets: as the libtorch path.
-        let mean_log_prob = w.head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
+        let mean_log_prob = head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
         let alpha_loss = -alpha * (mean_log_prob + self.target_entropy);
         if self.c.cfg.sac.autotune_alpha {
             let grad = Tensor::from_slice(&[alpha_loss as f32]);

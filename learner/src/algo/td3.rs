@@ -32,7 +32,9 @@ use super::{
     Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite,
     metric,
 };
+use super::fused;
 use crate::LearnerError;
+use crate::cpu::{Body, host_slice};
 use crate::batch::Minibatch;
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
@@ -48,6 +50,10 @@ pub struct Td3 {
     critic: Trained,
     target_actor: ParamSet,
     target_critic: ParamSet,
+    /// Buffers of the fused CPU update ([`LearnerConfig::fused_update`]).
+    ///
+    /// [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
+    host: fused::Work,
 }
 
 impl Td3 {
@@ -65,6 +71,7 @@ impl Td3 {
             critic: Trained::new(critic, c.cfg.critic_lr, &c),
             target_actor,
             target_critic,
+            host: fused::Work::default(),
             c,
         })
     }
@@ -95,6 +102,11 @@ impl Td3 {
     }
 
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
+        if self.c.cfg.fused_update && self.c.device == tch::Device::Cpu {
+            if let Some(stats) = self.update_host(b)? {
+                return Ok(stats);
+            }
+        }
         let eps = self.smoothing_noise(b.rows());
         let y = self.td_target(b, &eps);
         let CriticStep {
@@ -170,5 +182,67 @@ impl Td3 {
             ("actor", &mut self.actor.opt),
             ("critic", &mut self.critic.opt),
         ]
+    }
+}
+
+impl Td3 {
+    /// [`Td3::update`] through [`super::fused`]'s hand-written passes: the same steps, noise
+    /// draw, delay schedule, Adam and clipping, results equal up to float rounding. `None`
+    /// (nothing done, no noise drawn) when a batch column is not plain host f32.
+    fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
+        let Some(b) = fused::batch(b) else {
+            return Ok(None);
+        };
+        let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
+        let (std, limit) = (self.c.cfg.td3.target_noise_std as f32, self.c.cfg.td3.target_noise_clip as f32);
+        let z = self.c.noise.normal(rows, na, tch::Device::Cpu);
+        let z = host_slice(&z).expect("host noise");
+        let clip = self.c.cfg.grad_clip_norm;
+        let actor_body = Body::single(o, h, na);
+        let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
+        let w = &mut self.host;
+
+        // Eq. 7: y = r + γ(1 − terminal) min_k Q_tk(s′, clip(tanh π_t(s′) + clip(ε), −1, 1)).
+        actor_body.forward(host_slice(self.target_actor.flat()).expect("host parameters"), b.next_obs, rows, &mut w.actor);
+        let next: Vec<f32> = w
+            .actor
+            .y
+            .iter()
+            .zip(z)
+            .map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0))
+            .collect();
+        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+        w.critics_forward(&bodies, tp, b.next_obs, &next, na, rows);
+        w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
+        let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
+        self.c.updates += 1;
+        let mut scalars = vec![
+            (metric::CRITIC_LOSS, critic.loss),
+            (metric::Q_MEAN, critic.q_mean),
+            (metric::TARGET_MEAN, critic.target_mean),
+        ];
+        scalars.extend(critic.grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
+
+        if self.c.updates % self.c.cfg.td3.policy_delay == 0 {
+            // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, tanh π(s)) in θ.
+            actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.obs, rows, &mut w.actor);
+            w.tanh_action();
+            let cp = host_slice(self.critic.net.flat()).expect("host parameters");
+            let a = std::mem::take(&mut w.a);
+            w.critics_forward(&bodies, cp, b.obs, &a, na, rows);
+            w.a = a;
+            let actor_loss = -w.min_q_action_grad(&bodies, cp, o, na, rows);
+            if !actor_loss.is_finite() {
+                return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: actor_loss, update: self.c.updates });
+            }
+            w.tanh_backward();
+            let norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
+            let tau = self.c.cfg.tau;
+            self.target_actor.soft_update_from(&self.actor.net, tau);
+            self.target_critic.soft_update_from(&self.critic.net, tau);
+            scalars.push((metric::ACTOR_LOSS, actor_loss));
+            scalars.extend(norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
+        }
+        Ok(Some(UpdateStats { scalars, td_errors: critic.td_errors }))
     }
 }

@@ -1,0 +1,216 @@
+//! The pieces the three algorithms' fused CPU updates share ([`LearnerConfig::fused_update`]):
+//! critic stacks evaluated on `[s | a]`, the critic step of eqs. 1 / 6, ∂(min_k Q_k)/∂a for
+//! the actor objectives, and the actor's backward pass and step. Each is the libtorch path's
+//! computation written out over [`crate::cpu`]'s kernels; `tests/algo_targets.rs` holds each
+//! algorithm's fused update to its autograd update.
+//!
+//! [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
+
+use super::{Trained, metric};
+use crate::LearnerError;
+use crate::batch::Minibatch;
+use crate::cpu::{Acts, Body, Scratch, clip_grad_norm, host_slice, host_slice_mut};
+
+/// A minibatch's columns as host slices.
+pub(super) struct Batch<'a> {
+    pub obs: &'a [f32],
+    pub action: &'a [f32],
+    pub reward: &'a [f32],
+    pub next_obs: &'a [f32],
+    pub terminal: &'a [f32],
+    pub weights: &'a [f32],
+    pub rows: usize,
+}
+
+/// `None` when a column is not a contiguous host f32 tensor (then the autograd path runs).
+pub(super) fn batch(b: &Minibatch) -> Option<Batch<'_>> {
+    Some(Batch {
+        obs: host_slice(&b.obs)?,
+        action: host_slice(&b.action)?,
+        reward: host_slice(&b.reward)?,
+        next_obs: host_slice(&b.next_obs)?,
+        terminal: host_slice(&b.terminal)?,
+        weights: host_slice(&b.weights)?,
+        rows: b.rows(),
+    })
+}
+
+/// Reused buffers of a fused update.
+#[derive(Debug, Default)]
+pub(crate) struct Work {
+    /// Critic input `[B, obs + act]` of the last [`Work::critics_forward`].
+    pub x: Vec<f32>,
+    pub actor: Acts,
+    pub critics: Vec<Acts>,
+    pub scratch: Scratch,
+    /// Per critic, ∂L/∂Q `[B]`.
+    pub dq: Vec<Vec<f32>>,
+    /// ∂L/∂x through one critic.
+    pub dx: Vec<f32>,
+    /// ∂L/∂a summed over the critics `[B, act]`.
+    pub da: Vec<f32>,
+    /// ∂L/∂(actor output).
+    pub dy: Vec<f32>,
+    pub critic_grad: Vec<f32>,
+    pub actor_grad: Vec<f32>,
+    /// TD targets `[B]`.
+    pub y: Vec<f32>,
+    /// An action `[B, act]` (the deterministic actors' tanh output).
+    pub a: Vec<f32>,
+}
+
+/// The `k` critics of a [`crate::nets::stacked_mlp_specs`] stack on `obs + act` inputs.
+pub(super) fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize) -> Vec<Body> {
+    (0..k).map(|j| Body::stacked(j, k, obs + act, hidden, 1)).collect()
+}
+
+/// What a fused critic step reports (the autograd path's `CriticStep`).
+pub(super) struct CriticOut {
+    pub loss: f64,
+    pub q_mean: f64,
+    pub target_mean: f64,
+    pub grad_norm: Option<f64>,
+    pub td_errors: Vec<f32>,
+}
+
+impl Work {
+    /// Every critic of `bodies` (parameters `p`) on `x = [s | a]`; outputs in
+    /// `self.critics[j].y`.
+    pub fn critics_forward(&mut self, bodies: &[Body], p: &[f32], s: &[f32], a: &[f32], act: usize, rows: usize) {
+        let obs = s.len() / rows.max(1);
+        let width = obs + act;
+        self.x.resize(rows * width, 0.0);
+        for (r, out) in self.x.chunks_exact_mut(width).enumerate() {
+            out[..obs].copy_from_slice(&s[r * obs..(r + 1) * obs]);
+            out[obs..].copy_from_slice(&a[r * act..(r + 1) * act]);
+        }
+        self.critics.resize_with(bodies.len(), Acts::default);
+        for (body, acts) in bodies.iter().zip(self.critics.iter_mut()) {
+            body.forward(p, &self.x, rows, acts);
+        }
+    }
+
+    /// min_k Q_k for row `i` of the last [`Work::critics_forward`].
+    pub fn min_q(&self, i: usize) -> f32 {
+        self.critics.iter().map(|c| c.y[i]).fold(f32::INFINITY, f32::min)
+    }
+
+    /// y = r + γ(1 − terminal)·v, v per row from `value(row)` (eqs. 2, 7, 9).
+    pub fn targets(&mut self, b: &Batch<'_>, gamma: f64, value: impl Fn(&Self, usize) -> f32) {
+        let gamma = gamma as f32;
+        let y: Vec<f32> = (0..b.rows)
+            .map(|i| b.reward[i] + (1.0 - b.terminal[i]) * value(self, i) * gamma)
+            .collect();
+        self.y = y;
+    }
+
+    /// Eqs. 1 / 6 with importance weights: L = Σ_k (1/M) Σᵢ wᵢ (yᵢ − Q_k(sᵢ, aᵢ))², then one
+    /// clipped Adam step of the critics. `self.y` holds the targets. Fails, before stepping,
+    /// on a non-finite loss.
+    pub fn critic_step(
+        &mut self,
+        bodies: &[Body],
+        critic: &mut Trained,
+        b: &Batch<'_>,
+        act: usize,
+        clip: Option<f64>,
+        update: u64,
+    ) -> Result<CriticOut, LearnerError> {
+        let rows = b.rows;
+        let k = bodies.len();
+        let Trained { net, opt, .. } = critic;
+        let p = host_slice_mut(net.flat()).expect("host parameters");
+        self.critics_forward(bodies, p, b.obs, b.action, act, rows);
+        self.dq.resize_with(k, Vec::new);
+        let (mut loss, mut q_sum) = (0.0f64, 0.0f64);
+        let mut td_errors = vec![0.0f32; rows];
+        let scale = 2.0 / rows as f32;
+        for j in 0..k {
+            self.dq[j].resize(rows, 0.0);
+            for i in 0..rows {
+                let q = self.critics[j].y[i];
+                let td = q - self.y[i];
+                loss += f64::from(td * td * b.weights[i]);
+                q_sum += f64::from(q);
+                self.dq[j][i] = scale * b.weights[i] * td;
+                td_errors[i] += td.abs() / k as f32;
+            }
+        }
+        let loss = loss / rows as f64;
+        if !loss.is_finite() {
+            return Err(LearnerError::NonFiniteLoss { what: metric::CRITIC_LOSS, value: loss, update });
+        }
+        self.critic_grad.clear();
+        self.critic_grad.resize(p.len(), 0.0);
+        for (j, body) in bodies.iter().enumerate() {
+            body.backward(p, &self.x, &self.critics[j], &self.dq[j], Some(&mut self.critic_grad), None, &mut self.scratch);
+        }
+        let grad_norm = clip.map(|c| clip_grad_norm(&mut self.critic_grad, c));
+        opt.step_host(p, &self.critic_grad);
+        Ok(CriticOut {
+            loss,
+            q_mean: q_sum / (k * rows) as f64,
+            target_mean: self.y.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64,
+            grad_norm,
+            td_errors,
+        })
+    }
+
+    /// For the critics' last forward on `[s | a]` (parameters `p`), ∂(−(1/M) Σᵢ min_k Q_k)/∂a
+    /// into `self.da` — amin's backward: the whole gradient to the smaller critic, shared
+    /// evenly on a tie. No critic weight gradient is computed. Returns (1/M) Σᵢ min_k Q_k.
+    pub fn min_q_action_grad(&mut self, bodies: &[Body], p: &[f32], obs: usize, act: usize, rows: usize) -> f64 {
+        let k = bodies.len();
+        let g = -1.0 / rows as f32;
+        self.dq.resize_with(k, Vec::new);
+        let mut sum = 0.0f64;
+        for i in 0..rows {
+            let q = self.min_q(i);
+            sum += f64::from(q);
+            let ties = self.critics.iter().filter(|c| c.y[i] == q).count() as f32;
+            for j in 0..k {
+                self.dq[j].resize(rows, 0.0);
+                self.dq[j][i] = if self.critics[j].y[i] == q { g / ties } else { 0.0 };
+            }
+        }
+        let width = obs + act;
+        self.da.clear();
+        self.da.resize(rows * act, 0.0);
+        self.dx.resize(rows * width, 0.0);
+        for (j, body) in bodies.iter().enumerate() {
+            body.backward(p, &self.x, &self.critics[j], &self.dq[j], None, Some(&mut self.dx), &mut self.scratch);
+            for i in 0..rows {
+                for c in 0..act {
+                    self.da[i * act + c] += self.dx[i * width + obs + c];
+                }
+            }
+        }
+        sum / rows as f64
+    }
+
+    /// Backward through the actor's last forward on `obs` from `self.dy`, then one clipped
+    /// Adam step. Returns the norm before clipping when clipping is on.
+    pub fn actor_step(&mut self, body: &Body, actor: &mut Trained, obs: &[f32], clip: Option<f64>) -> Option<f64> {
+        let Trained { net, opt, .. } = actor;
+        let p = host_slice_mut(net.flat()).expect("host parameters");
+        self.actor_grad.clear();
+        self.actor_grad.resize(p.len(), 0.0);
+        body.backward(p, obs, &self.actor, &self.dy, Some(&mut self.actor_grad), None, &mut self.scratch);
+        let norm = clip.map(|c| clip_grad_norm(&mut self.actor_grad, c));
+        opt.step_host(p, &self.actor_grad);
+        norm
+    }
+
+    /// a = tanh(y) of the deterministic actors (DDPG, TD3) from the actor's last forward.
+    pub fn tanh_action(&mut self) {
+        self.a.clear();
+        self.a.extend(self.actor.y.iter().map(|v| v.tanh()));
+    }
+
+    /// ∂/∂y of the deterministic actors' objective −mean min Q(s, tanh(y)), from `self.da`
+    /// and `self.a` (tanh's backward: ·(1 − a²)), into `self.dy`.
+    pub fn tanh_backward(&mut self) {
+        self.dy.clear();
+        self.dy.extend(self.da.iter().zip(&self.a).map(|(d, a)| d * (1.0 - a * a)));
+    }
+}
