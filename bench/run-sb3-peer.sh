@@ -80,8 +80,11 @@ def rows(path, bench="learner.updates_per_s"):
             value = r.get("updates_per_s", r.get("value"))
             if algo and value is not None and "threads" in r:
                 yield r.get("impl", "mapless"), algo, int(r["threads"]), float(value)
-ours = {(a, t): v for _, a, t, v in rows(sys.argv[1])}
-ceiling = {(a, t): v for _, a, t, v in rows(sys.argv[1], "learner.f32_ceiling_updates_per_s")}
+ours, ceiling = {}, {}
+for _, a, t, v in rows(sys.argv[1]):
+    ours.setdefault((a, t), v)  # the first line per (algo, threads) is the default configuration
+for _, a, t, v in rows(sys.argv[1], "learner.f32_ceiling_updates_per_s"):
+    ceiling.setdefault((a, t), v)
 peer = {}
 for impl, a, t, v in rows(sys.argv[2]):
     peer.setdefault(impl, {})[(a, t)] = v

@@ -190,9 +190,14 @@ enum BenchCmd {
         /// Algorithms to measure.
         #[arg(long, value_delimiter = ',', default_value = "ddpg,td3,sac")]
         algos: Vec<String>,
-        /// Also measure with the twin critics evaluated one after the other (TD3, SAC).
+        /// Also measure with the twin critics evaluated one after the other (TD3, SAC; the
+        /// autograd path).
         #[arg(long)]
         unfused: bool,
+        /// Also measure the libtorch autograd path (`fused_update: false`), for comparison
+        /// with the default fused CPU update.
+        #[arg(long)]
+        autograd: bool,
         #[arg(long)]
         json: bool,
     },
@@ -250,7 +255,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
-        Cmd::Bench { cmd: BenchCmd::Learner { seconds, device, threads, algos, unfused, json } } => bench_learner(seconds, &device, &threads, &algos, unfused, json),
+        Cmd::Bench { cmd: BenchCmd::Learner { seconds, device, threads, algos, unfused, autograd, json } } => bench_learner(seconds, &device, &threads, &algos, unfused, autograd, json),
         Cmd::Bench { cmd: BenchCmd::E2e { actors, seconds, vehicles, set, json } } => bench_e2e(&actors, seconds, vehicles, &set, json),
     }
 }
@@ -477,7 +482,7 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
     Ok(())
 }
 
-fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String], unfused: bool, json: bool) -> Result<()> {
+fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String], unfused: bool, autograd: bool, json: bool) -> Result<()> {
     use mapless_learner::config::{AlgorithmKind, LearnerConfig};
     use mapless_learner::{Device, TorchThreads, algo::bench_updates};
     if !(seconds > 0.0) || threads.is_empty() || threads.contains(&0) {
@@ -514,14 +519,23 @@ fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String]
             report(json, "learner.matmul_gflops", serde_json::json!({"device": device, "threads": t, "dtype": name, "shape": shape}), g, "GFLOP/s");
         }
         for &kind in &kinds {
-            let fused_options: &[bool] = if unfused && kind != AlgorithmKind::Ddpg { &[true, false] } else { &[true] };
-            for &fused in fused_options {
-                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, ..LearnerConfig::default() };
+            // (fused_update, fused_critics): the default first, then what was asked for.
+            let mut variants = vec![(true, true)];
+            if autograd {
+                variants.push((false, true));
+            }
+            if unfused && kind != AlgorithmKind::Ddpg {
+                variants.push((false, false));
+            }
+            for (fused_update, fused) in variants {
+                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, ..LearnerConfig::default() };
                 // libtorch fixes the inter-op pool once per process; only the intra-op count varies.
                 let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
-                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
+                // The fused update runs on the CPU only; elsewhere the autograd path runs.
+                let path = if fused_update && dev == Device::Cpu { "fused" } else { "autograd" };
+                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "update": path, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
                 report(json, "learner.updates_per_s", config, v, "updates/s");
-                if fused {
+                if fused_update {
                     // Matrix-product work per update, and the updates/s that f32 products alone
                     // would allow at the rate just measured: no implementation in f32 beats it.
                     let flops = mapless_learner::ceiling::update_flops(&cfg, obs_dim, act_dim);

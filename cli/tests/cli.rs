@@ -1,4 +1,4 @@
-//! The `mapless` binary end to end: maps pictures, a rollout, the sim benchmark's JSON lines,
+//! The `mapless` binary end to end: maps pictures, a rollout, the sim and learner benchmarks' JSON lines,
 //! and clear errors for bad input.
 
 use std::path::{Path, PathBuf};
@@ -62,6 +62,34 @@ fn bench_sim_json_prints_one_object_per_scan_preset() {
         assert_eq!(l["unit"], "steps/s");
         assert_eq!(l["config"]["map"], "env2");
         assert!(l["value"].as_f64().unwrap() > 0.0);
+    }
+}
+
+#[test]
+fn bench_learner_json_prints_rates_the_f32_ceiling_and_both_update_paths() {
+    let o = mapless(&["bench", "learner", "--json", "--seconds", "0.1", "--threads", "1", "--algos", "sac", "--autograd"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let lines: Vec<serde_json::Value> = String::from_utf8(o.stdout).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let names: Vec<&str> = lines.iter().map(|l| l["bench"].as_str().unwrap()).collect();
+    assert_eq!(
+        names,
+        [
+            "learner.matmul_gflops",
+            "learner.matmul_gflops",
+            "learner.updates_per_s",
+            "learner.f32_ceiling_updates_per_s",
+            "learner.share_of_f32_ceiling",
+            "learner.updates_per_s",
+        ]
+    );
+    assert_eq!(lines[0]["config"]["dtype"], "f32");
+    assert_eq!(lines[1]["config"]["dtype"], "bf16");
+    assert_eq!(lines[2]["config"]["update"], "fused");
+    assert_eq!(lines[5]["config"]["update"], "autograd");
+    // SAC at the paper's sizes: 286,064,640 FLOP of products per update (mapless_learner::ceiling).
+    assert_eq!(lines[3]["config"]["flop_per_update"].as_f64(), Some(286_064_640.0));
+    for l in &lines {
+        assert!(l["value"].as_f64().unwrap() > 0.0, "{l}");
     }
 }
 

@@ -225,9 +225,11 @@ pub struct Scratch {
     d2: Vec<f32>,
 }
 
+/// ReLU that keeps NaN (as libtorch's does), so a diverged network still fails the finite-loss
+/// check instead of being masked to zero.
 fn relu(v: &mut [f32]) {
     for x in v {
-        *x = x.max(0.0);
+        *x = if *x < 0.0 { 0.0 } else { *x };
     }
 }
 
@@ -235,7 +237,7 @@ fn relu(v: &mut [f32]) {
 fn mask(d: &mut [f32], out: &[f32]) {
     // A select, not a conditional store, so that it vectorises.
     for (g, &o) in d.iter_mut().zip(out) {
-        *g = if o > 0.0 { *g } else { 0.0 };
+        *g = if o <= 0.0 { 0.0 } else { *g };
     }
 }
 
@@ -345,6 +347,21 @@ mod tests {
             // The stack's other network gets no gradient from network 1's output.
             close(&grad, &want_grad, 1e-5);
         }
+    }
+
+    #[test]
+    fn a_nan_weight_reaches_the_output_as_in_libtorch() {
+        // 2 → 3 → 3 → 1, every parameter 0.1 except l1.weight[0, 0] (offset 2·3 + 3).
+        let body = Body::single(2, 3, 1);
+        let mut p = vec![0.1f32; 2 * 3 + 3 + 3 * 3 + 3 + 3 + 1];
+        p[9] = f32::NAN;
+        let mut act = Acts::default();
+        body.forward(&p, &[1.0, 1.0], 1, &mut act);
+        assert!(act.y[0].is_nan(), "ReLU must not turn NaN into 0: {:?}", act.y);
+        // ReLU's backward keeps the gradient where the output is NaN (threshold_backward).
+        let mut d = vec![1.0f32, 2.0, 3.0];
+        mask(&mut d, &[f32::NAN, -1.0, 0.0]);
+        assert_eq!(d, vec![1.0, 0.0, 0.0]);
     }
 
     #[test]
