@@ -100,5 +100,5 @@ for key in sorted(ours, key=lambda k: (["sac", "td3", "ddpg"].index(k[0]) if k[0
     c = ceiling.get(key)
     print(f"{key[0]:>5} {key[1]:>7} {ours[key]:>11,.1f} {(f'{c:,.1f}' if c else '-'):>11} " + " ".join(cells))
 print("(target of issue 4: ours/sb3 >= 3x for SAC; 'f32 ceiling' is the updates/s that this machine's")
-print(" f32 matrix products alone allow (mapless_learner::ceiling): no f32 implementation exceeds it)")
+print(" f32 matrix products alone allow (mapless_learner::ceiling), an estimate of the most any f32 code can do)")
 EOF

@@ -537,7 +537,7 @@ fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String]
                 report(json, "learner.updates_per_s", config, v, "updates/s");
                 if fused_update {
                     // Matrix-product work per update, and the updates/s that f32 products alone
-                    // would allow at the rate just measured: no implementation in f32 beats it.
+                    // would allow at the rate just measured: an estimate of the most f32 code can do.
                     let flops = mapless_learner::ceiling::update_flops(&cfg, obs_dim, act_dim);
                     let bound = f32_gflops * 1e9 / flops;
                     let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "flop_per_update": flops, "f32_matmul_gflops": (f32_gflops * 10.0).round() / 10.0});

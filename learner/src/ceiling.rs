@@ -2,8 +2,10 @@
 //! the rate at which libtorch multiplies matrices of the networks' shape here.
 //!
 //! At the paper's sizes (2×256 hidden, minibatch 128) an update is almost entirely matrix
-//! products, so `matmul GFLOP/s ÷ FLOP per update` bounds updates/s from above whatever the
-//! implementation does about dispatch, allocation or fusion. `mapless bench learner` prints
+//! products, so `matmul GFLOP/s ÷ FLOP per update` estimates the most updates/s any f32
+//! implementation can reach, whatever it does about dispatch, allocation or fusion (an
+//! estimate: the rate is MKL's at the dominant `[128, 256] × [256, 256]` shape; smaller layers
+//! run slower, and on this project's machine it is near one core's FMA peak). `mapless bench learner` prints
 //! both, and the fraction of that bound each algorithm reaches.
 //!
 //! Multiply–accumulates (MACs) per row, for a body `in → H → H → out`:

@@ -107,12 +107,12 @@ pub struct LearnerConfig {
     /// critic) [inferred: true]. Applies to the autograd path (CUDA, `fused_update: false`);
     /// the fused CPU update runs each critic's layers as their own products.
     pub fused_critics: bool,
-    /// SAC on the CPU: run each update through hand-written forward and backward passes (one
+    /// On the CPU, run each update through hand-written forward and backward passes (one
     /// BLAS product per layer into reused buffers, fused elementwise loops, no autograd graph;
     /// `learner/src/cpu.rs`) instead of libtorch's autograd. The same equations, noise draws,
     /// Adam and clipping; results equal to the autograd path up to float rounding (tested).
-    /// Purely a speed choice; see docs/learner.md for what it gave [inferred: true]. DDPG,
-    /// TD3 and CUDA always use autograd.
+    /// Purely a speed choice, for all three algorithms; see docs/learner.md for what it gave
+    /// [inferred: true]. CUDA always uses autograd.
     pub fused_update: bool,
     /// DDPG's own settings.
     pub ddpg: DdpgConfig,

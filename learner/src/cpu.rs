@@ -1,13 +1,14 @@
-//! Hand-written CPU kernels for the fused update path ([`crate::algo::sac`]'s
-//! `fused_update`): row-major matrix products through the BLAS that libtorch itself calls
-//! (`sgemm_`, MKL in the PyPI wheels), two-hidden-layer ReLU bodies with their backward
-//! passes written out, and Adam on raw slices.
+//! Hand-written CPU kernels for the fused update of all three algorithms
+//! ([`crate::config::LearnerConfig::fused_update`]): row-major matrix products through the
+//! BLAS that libtorch itself calls (`sgemm_`, MKL in the PyPI wheels), two-hidden-layer ReLU
+//! bodies with their backward passes written out, and global-norm clipping on raw slices
+//! (Adam's host step is [`crate::optim::Adam::step_host`]).
 //!
-//! Why: at the paper's sizes an update is ~286 MFLOP of products, but through autograd it
-//! also pays ~200 dispatched operations, their allocations and the graph — about as much
-//! time again (`mapless bench learner` prints the products' ceiling and the share reached).
-//! Here every layer is one `sgemm` into a reused buffer, and bias, ReLU, its mask and the
-//! optimiser are single fused loops.
+//! Why: at the paper's sizes a SAC update is 286 MFLOP of products, but through autograd each
+//! of its many small operations also pays dispatch, allocation and graph bookkeeping; that path
+//! reaches 0.5–0.6 of the products' f32 ceiling, this one about 0.8 (`mapless bench learner`
+//! prints both; docs/learner.md). Here every layer is one `sgemm` into a reused buffer, and
+//! bias, ReLU, its mask and the optimiser are single loops.
 //!
 //! Layouts are those of [`crate::nets`]: PyTorch's `[out, in]` for [`mlp_specs`] networks
 //! (the actor) and input-major `[k, in, out]` stacks for [`stacked_mlp_specs`] (the critics).
@@ -242,7 +243,12 @@ fn mask(d: &mut [f32], out: &[f32]) {
 }
 
 /// The f32 contents of a contiguous CPU tensor, or `None` for anything else.
-pub fn host_slice(t: &Tensor) -> Option<&[f32]> {
+///
+/// # Safety
+/// Nothing may write the tensor's bytes (through another tensor sharing its storage, or a
+/// [`host_slice_mut`]) while the slice is alive. The fused updates read batch columns, noise
+/// and parameter buffers that only they touch during an update.
+pub unsafe fn host_slice(t: &Tensor) -> Option<&[f32]> {
     if t.device() != tch::Device::Cpu || t.kind() != tch::Kind::Float || !t.is_contiguous() {
         return None;
     }
@@ -252,10 +258,14 @@ pub fn host_slice(t: &Tensor) -> Option<&[f32]> {
     Some(unsafe { std::slice::from_raw_parts(t.data_ptr() as *const f32, n) })
 }
 
-/// Mutable f32 contents of a contiguous CPU tensor. The caller must hold the only live view
-/// of these bytes for the borrow's duration (the fused path owns its parameter buffers).
+/// Mutable f32 contents of a contiguous CPU tensor, or `None` for anything else.
+///
+/// # Safety
+/// The slice must be the only live view of these bytes for its lifetime: no other slice of
+/// them, and no tensor operation on a tensor sharing the storage, until it is dropped (the
+/// fused updates hold one network's buffer, or Adam's moments, at a time).
 #[allow(clippy::mut_from_ref)]
-pub fn host_slice_mut(t: &Tensor) -> Option<&mut [f32]> {
+pub unsafe fn host_slice_mut(t: &Tensor) -> Option<&mut [f32]> {
     if t.device() != tch::Device::Cpu || t.kind() != tch::Kind::Float || !t.is_contiguous() {
         return None;
     }
@@ -300,7 +310,7 @@ mod tests {
             let b = if tb { t(n, k, 1.3) } else { t(k, n, 1.3) };
             let want = (if ta { a.tr() } else { a.shallow_clone() }).mm(&if tb { b.tr() } else { b.shallow_clone() });
             let mut c = vec![1.0f32; m * n];
-            gemm(ta, tb, m, n, k, host_slice(&a).unwrap(), host_slice(&b).unwrap(), 1.0, &mut c);
+            gemm(ta, tb, m, n, k, unsafe { host_slice(&a) }.unwrap(), unsafe { host_slice(&b) }.unwrap(), 1.0, &mut c);
             let want: Vec<f32> = Vec::try_from(&(want + 1.0).reshape([-1])).unwrap();
             close(&c, &want, 1e-5);
         }
@@ -334,7 +344,7 @@ mod tests {
             let want_grad: Vec<f32> = Vec::try_from(&ParamSet::flat_grad(&grads[..grads.len() - 1])).unwrap();
             let want_dx: Vec<f32> = Vec::try_from(&grads[grads.len() - 1].reshape([-1])).unwrap();
 
-            let p = host_slice(set.flat()).unwrap();
+            let p = unsafe { host_slice(set.flat()) }.unwrap();
             let xs: Vec<f32> = Vec::try_from(&x.detach().reshape([-1])).unwrap();
             let mut act = Acts::default();
             body.forward(p, &xs, rows, &mut act);

@@ -93,14 +93,15 @@ impl Adam {
         let _ = p.addcdiv_(&self.exp_avg, &denom);
     }
 
-    /// The moments, for checkpoints: `(exp_avg, exp_avg_sq)`.
     /// [`Adam::step`] on host memory, one fused pass: `params` and `grad` are the network's
     /// flat buffers as slices (CPU only; the moments must be CPU tensors, which they are
     /// whenever the parameters are). Same arithmetic in f32 as the tensor version, which
     /// `lerp`s with weight 1 − β < ½ (m + (1 − β)(g − m)).
-    pub fn step_host(&mut self, params: &mut [f32], grad: &[f32]) {
-        let m = crate::cpu::host_slice_mut(&self.exp_avg).expect("Adam moments on the host");
-        let v = crate::cpu::host_slice_mut(&self.exp_avg_sq).expect("Adam moments on the host");
+    pub(crate) fn step_host(&mut self, params: &mut [f32], grad: &[f32]) {
+        // SAFETY: the moments are this optimiser's own buffers, not shared with any tensor or
+        // slice alive during this call.
+        let m = unsafe { crate::cpu::host_slice_mut(&self.exp_avg) }.expect("Adam moments on the host");
+        let v = unsafe { crate::cpu::host_slice_mut(&self.exp_avg_sq) }.expect("Adam moments on the host");
         assert!(m.len() == params.len() && grad.len() == params.len(), "Adam sizes");
         self.step += 1;
         let AdamConfig { beta1, beta2, eps } = self.cfg;
@@ -116,6 +117,7 @@ impl Adam {
         }
     }
 
+    /// The moments, for checkpoints: `(exp_avg, exp_avg_sq)`.
     pub fn moments(&self) -> (&Tensor, &Tensor) {
         (&self.exp_avg, &self.exp_avg_sq)
     }

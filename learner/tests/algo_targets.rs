@@ -629,6 +629,7 @@ fn fused_updates_match_autograd() {
         };
         let (mut fused, mut autograd) = (make(true), make(false));
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let mut last = None;
         for step in 0..6 {
             let mut u = |n: usize, lo: f32, hi: f32| -> Vec<f32> {
                 (0..n).map(|_| rand::Rng::random_range(&mut rng, lo..hi)).collect()
@@ -659,6 +660,7 @@ fn fused_updates_match_autograd() {
             .unwrap();
             let sf = fused.update(&b).unwrap();
             let sa = autograd.update(&b).unwrap();
+            last = Some(b);
             assert_eq!(sf.scalars.len(), sa.scalars.len());
             for ((nf, vf), (na, va)) in sf.scalars.iter().zip(&sa.scalars) {
                 assert_eq!(nf, na);
@@ -684,6 +686,27 @@ fn fused_updates_match_autograd() {
             }
         }
         eprintln!("{kind:?} (log σ max {log_std_max}): largest relative difference {:.2e} at {}", worst.0, worst.1);
+        // Rounding differs somewhere, so the fused path did run (it falls back to autograd
+        // on batches it cannot read, which would make the two agents bit-identical).
+        assert!(worst.0 > 0.0, "{kind:?}: the two paths are bit-identical");
+        // A diverged critic: both paths refuse the update with the same error and counter.
+        let shape = fused
+            .state_tensors()
+            .into_iter()
+            .find(|(n, _)| n == "critic.out.bias")
+            .unwrap()
+            .1
+            .size();
+        let n: i64 = shape.iter().product();
+        let nan = Tensor::from_slice(&vec![f32::NAN; n as usize]).view(shape.as_slice());
+        let b = last.unwrap();
+        let mut errors = Vec::new();
+        for agent in [&mut fused, &mut autograd] {
+            agent.set_tensors(&[("critic.out.bias", nan.shallow_clone())]).unwrap();
+            errors.push(agent.update(&b).unwrap_err().to_string());
+        }
+        assert_eq!(errors[0], errors[1], "{kind:?}");
+        assert!(errors[0].contains("losses/critic"), "{}", errors[0]);
         // The updates moved the networks: the comparison is not of two untouched copies.
         let fresh = state(&make(true));
         assert!(fresh["actor.l1.weight"] != sf["actor.l1.weight"]);

@@ -181,6 +181,10 @@ impl Ddpg {
         let Some(b) = fused::batch(b) else {
             return Ok(None);
         };
+        // SAFETY (every `host_slice` below): each slice is read before anything writes its
+        // buffer — a network is written only by its own step (`critic_step`/`actor_step`,
+        // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
+        // soft update after the last read.
         let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, na);
@@ -188,9 +192,9 @@ impl Ddpg {
         let w = &mut self.host;
 
         // Eq. 2: y = r + γ(1 − terminal) Q_t(s′, tanh π_t(s′)).
-        actor_body.forward(host_slice(self.target_actor.flat()).expect("host parameters"), b.next_obs, rows, &mut w.actor);
+        actor_body.forward(unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
         w.tanh_action();
-        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+        let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
         let a = std::mem::take(&mut w.a);
         w.critics_forward(&bodies, tp, b.next_obs, &a, na, rows);
         w.a = a;
@@ -198,9 +202,9 @@ impl Ddpg {
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
 
         // Eqs. 3–5: descend −mean Q(s, tanh π(s)) in θ.
-        actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.obs, rows, &mut w.actor);
+        actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.obs, rows, &mut w.actor);
         w.tanh_action();
-        let cp = host_slice(self.critic.net.flat()).expect("host parameters");
+        let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
         let a = std::mem::take(&mut w.a);
         w.critics_forward(&bodies, cp, b.obs, &a, na, rows);
         w.a = a;

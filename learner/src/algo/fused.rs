@@ -24,13 +24,14 @@ pub(super) struct Batch<'a> {
 
 /// `None` when a column is not a contiguous host f32 tensor (then the autograd path runs).
 pub(super) fn batch(b: &Minibatch) -> Option<Batch<'_>> {
+    // SAFETY: the minibatch's tensors are read-only for the whole update.
     Some(Batch {
-        obs: host_slice(&b.obs)?,
-        action: host_slice(&b.action)?,
-        reward: host_slice(&b.reward)?,
-        next_obs: host_slice(&b.next_obs)?,
-        terminal: host_slice(&b.terminal)?,
-        weights: host_slice(&b.weights)?,
+        obs: unsafe { host_slice(&b.obs) }?,
+        action: unsafe { host_slice(&b.action) }?,
+        reward: unsafe { host_slice(&b.reward) }?,
+        next_obs: unsafe { host_slice(&b.next_obs) }?,
+        terminal: unsafe { host_slice(&b.terminal) }?,
+        weights: unsafe { host_slice(&b.weights) }?,
         rows: b.rows(),
     })
 }
@@ -90,9 +91,13 @@ impl Work {
         }
     }
 
-    /// min_k Q_k for row `i` of the last [`Work::critics_forward`].
+    /// min_k Q_k for row `i` of the last [`Work::critics_forward`]; NaN if any is NaN, as
+    /// libtorch's `amin` (so a diverged critic fails the finite-loss check at once).
     pub fn min_q(&self, i: usize) -> f32 {
-        self.critics.iter().map(|c| c.y[i]).fold(f32::INFINITY, f32::min)
+        self.critics
+            .iter()
+            .map(|c| c.y[i])
+            .fold(f32::INFINITY, |m, v| if m.is_nan() || v.is_nan() { f32::NAN } else { m.min(v) })
     }
 
     /// y = r + γ(1 − terminal)·v, v per row from `value(row)` (eqs. 2, 7, 9).
@@ -119,7 +124,8 @@ impl Work {
         let rows = b.rows;
         let k = bodies.len();
         let Trained { net, opt, .. } = critic;
-        let p = host_slice_mut(net.flat()).expect("host parameters");
+        // SAFETY: `net`'s buffer is borrowed exclusively here; no other slice of it is alive.
+        let p = unsafe { host_slice_mut(net.flat()) }.expect("host parameters");
         self.critics_forward(bodies, p, b.obs, b.action, act, rows);
         self.dq.resize_with(k, Vec::new);
         let (mut loss, mut q_sum) = (0.0f64, 0.0f64);
@@ -192,7 +198,8 @@ impl Work {
     /// Adam step. Returns the norm before clipping when clipping is on.
     pub fn actor_step(&mut self, body: &Body, actor: &mut Trained, obs: &[f32], clip: Option<f64>) -> Option<f64> {
         let Trained { net, opt, .. } = actor;
-        let p = host_slice_mut(net.flat()).expect("host parameters");
+        // SAFETY: `net`'s buffer is borrowed exclusively here; no other slice of it is alive.
+        let p = unsafe { host_slice_mut(net.flat()) }.expect("host parameters");
         self.actor_grad.clear();
         self.actor_grad.resize(p.len(), 0.0);
         body.backward(p, obs, &self.actor, &self.dy, Some(&mut self.actor_grad), None, &mut self.scratch);

@@ -320,7 +320,7 @@ impl Head {
             for j in 0..act {
                 let (i, mean, raw) = (r * act + j, y[r * 2 * act + j], y[r * 2 * act + act + j]);
                 let ls = raw.clamp(lo32, hi32);
-                self.inside[i] = f64::from(raw) >= lo && f64::from(raw) <= hi;
+                self.inside[i] = raw >= lo32 && raw <= hi32; // clamp's backward, bounds in f32
                 let u = mean + ls.exp() * eps[i];
                 self.u[i] = u;
                 self.a[i] = u.tanh();
@@ -352,16 +352,20 @@ fn softplus_grad(x: f32) -> f32 {
 impl Sac {
     /// One update through [`crate::cpu`]'s hand-written passes: the steps and equations of
     /// [`Sac::update`]'s libtorch path (module docs), with the same noise draws, Adam and
-    /// clipping; results equal up to float rounding (`fused_update_matches_autograd`).
+    /// clipping; results equal up to float rounding (`tests/algo_targets.rs`, `fused_updates_match_autograd`).
     /// `None` (nothing done, no noise drawn) when a batch tensor is not plain host f32.
     fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
         let Some(b) = fused::batch(b) else {
             return Ok(None);
         };
+        // SAFETY (every `host_slice` below): each slice is read before anything writes its
+        // buffer — a network is written only by its own step (`critic_step`/`actor_step`,
+        // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
+        // soft update after the last read.
         let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
         let eps_next_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
         let eps_now_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
-        let (eps_next, eps_now) = (host_slice(&eps_next_t).expect("host noise"), host_slice(&eps_now_t).expect("host noise"));
+        let (eps_next, eps_now) = (unsafe { host_slice(&eps_next_t) }.expect("host noise"), unsafe { host_slice(&eps_now_t) }.expect("host noise"));
         let alpha = self.alpha();
         let alpha32 = alpha as f32;
         let (lo, hi) = (self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
@@ -371,9 +375,9 @@ impl Sac {
         let (w, head) = (&mut self.host.0, &mut self.host.1);
 
         // 1. Targets, eq. 9: y = r + γ(1 − terminal)(min_k Q_tk(s′, ã′) − α ln π(ã′|s′)).
-        actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.next_obs, rows, &mut w.actor);
+        actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
         head.sample(&w.actor.y, eps_next, rows, na, lo, hi);
-        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+        let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, tp, b.next_obs, &head.a, na, rows);
         w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i) - head.log_prob[i] * alpha32);
 
@@ -381,9 +385,9 @@ impl Sac {
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
 
         // 3. Actor, eq. 11, against the critics just updated: J = mean(α ln π − min_k Q_k).
-        actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.obs, rows, &mut w.actor);
+        actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.obs, rows, &mut w.actor);
         head.sample(&w.actor.y, eps_now, rows, na, lo, hi);
-        let cp = host_slice(self.critic.net.flat()).expect("host parameters");
+        let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, cp, b.obs, &head.a, na, rows);
         let mut actor_loss = 0.0f64;
         for i in 0..rows {

@@ -193,17 +193,21 @@ impl Td3 {
         let Some(b) = fused::batch(b) else {
             return Ok(None);
         };
+        // SAFETY (every `host_slice` below): each slice is read before anything writes its
+        // buffer — a network is written only by its own step (`critic_step`/`actor_step`,
+        // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
+        // soft update after the last read.
         let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
         let (std, limit) = (self.c.cfg.td3.target_noise_std as f32, self.c.cfg.td3.target_noise_clip as f32);
         let z = self.c.noise.normal(rows, na, tch::Device::Cpu);
-        let z = host_slice(&z).expect("host noise");
+        let z = unsafe { host_slice(&z) }.expect("host noise");
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, na);
         let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
         let w = &mut self.host;
 
         // Eq. 7: y = r + γ(1 − terminal) min_k Q_tk(s′, clip(tanh π_t(s′) + clip(ε), −1, 1)).
-        actor_body.forward(host_slice(self.target_actor.flat()).expect("host parameters"), b.next_obs, rows, &mut w.actor);
+        actor_body.forward(unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
         let next: Vec<f32> = w
             .actor
             .y
@@ -211,7 +215,7 @@ impl Td3 {
             .zip(z)
             .map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0))
             .collect();
-        let tp = host_slice(self.target_critic.flat()).expect("host parameters");
+        let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, tp, b.next_obs, &next, na, rows);
         w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
@@ -225,9 +229,9 @@ impl Td3 {
 
         if self.c.updates % self.c.cfg.td3.policy_delay == 0 {
             // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, tanh π(s)) in θ.
-            actor_body.forward(host_slice(self.actor.net.flat()).expect("host parameters"), b.obs, rows, &mut w.actor);
+            actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.obs, rows, &mut w.actor);
             w.tanh_action();
-            let cp = host_slice(self.critic.net.flat()).expect("host parameters");
+            let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
             let a = std::mem::take(&mut w.a);
             w.critics_forward(&bodies, cp, b.obs, &a, na, rows);
             w.a = a;
