@@ -46,7 +46,7 @@ pub struct LearnerServiceConfig {
     /// TensorBoard event files.
     pub tensorboard_dir: Option<PathBuf>,
     /// Newest published policy, for evaluation and deployment (`.safetensors`, written at
-    /// every checkpoint and at exit).
+    /// start, every [`POLICY_FILE_EVERY`] while the weights version advances, and at exit).
     pub policy_file: Option<PathBuf>,
     /// Continue from the newest checkpoint in `checkpoint_dir` when there is one.
     #[serde(default)]
@@ -107,6 +107,10 @@ struct Status {
     batches: u64,
     reconnects: u64,
 }
+
+/// How often the policy file follows the published weights (a progress evaluation reads it;
+/// the actor's weights are a few hundred kB, written atomically).
+const POLICY_FILE_EVERY: Duration = Duration::from_secs(5);
 
 fn write_policy(driver: &Driver, path: &Option<PathBuf>) {
     if let Some(p) = path {
@@ -207,6 +211,7 @@ pub fn run(config_path: &Path) -> Result<()> {
 
     let mut last = (Instant::now(), driver.agent().updates());
     let mut last_policy_write = Instant::now();
+    let mut last_policy_version = driver.weights_version();
     let mut last_recorded_version = 0;
     while !stop.load(Ordering::Relaxed) {
         driver.try_step(Duration::from_millis(200))?;
@@ -234,9 +239,10 @@ pub fn run(config_path: &Path) -> Result<()> {
             gauges.reconnects.store(status.reconnects, Ordering::Relaxed);
             last = (Instant::now(), n);
         }
-        if last_policy_write.elapsed() >= Duration::from_secs(30) {
+        if last_policy_write.elapsed() >= POLICY_FILE_EVERY && driver.weights_version() != last_policy_version {
             write_policy(&driver, &cfg.policy_file);
             last_policy_write = Instant::now();
+            last_policy_version = driver.weights_version();
         }
     }
     // Final: publish, checkpoint, policy file.

@@ -155,7 +155,9 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     let run = dir.path().join("tiny");
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     let run_arg = run.to_string_lossy().into_owned();
-    let mut child = train(&run, &["--preset", "env1-sac", "--actors", "2", "--vehicles", "2", "--run", &run_arg]);
+    // The test stops the run itself: a tiny run can reach the preset's 10,000 episodes in
+    // half a minute, before the kill-and-restart and a progress evaluation have been seen.
+    let mut child = train(&run, &["--preset", "env1-sac", "--actors", "2", "--vehicles", "2", "--episodes", "10000000", "--run", &run_arg]);
 
     let endpoints = wait_for("endpoints.json", Duration::from_secs(180), &mut child, &run, || json(&run.join("endpoints.json")));
     let replay_uri = endpoints["replay"].as_str().unwrap().to_owned();
