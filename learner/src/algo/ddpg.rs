@@ -192,28 +192,15 @@ impl Ddpg {
         let w = &mut self.host;
 
         // Eq. 2: y = r + γ(1 − terminal) Q_t(s′, tanh π_t(s′)).
-        actor_body.forward(unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
-        w.tanh_action();
+        w.tanh_action(&actor_body, unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows);
         let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
-        let a = std::mem::take(&mut w.a);
-        w.critics_forward(&bodies, tp, b.next_obs, &a, na, rows);
-        w.a = a;
+        w.critics_forward_at_action(&bodies, tp, b.next_obs, na, rows);
         w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
 
         // Eqs. 3–5: descend −mean Q(s, tanh π(s)) in θ.
-        actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.obs, rows, &mut w.actor);
-        w.tanh_action();
-        let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
-        let a = std::mem::take(&mut w.a);
-        w.critics_forward(&bodies, cp, b.obs, &a, na, rows);
-        w.a = a;
-        let actor_loss = -w.min_q_action_grad(&bodies, cp, o, na, rows);
-        if !actor_loss.is_finite() {
-            return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: actor_loss, update: self.c.updates });
-        }
-        w.tanh_backward();
-        let actor_norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
+        let (actor_loss, actor_norm) =
+            w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
 
         let tau = self.c.cfg.tau;
         self.target_actor.soft_update_from(&self.actor.net, tau);

@@ -6,7 +6,7 @@
 //!
 //! [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
 
-use super::{Trained, metric};
+use super::{CriticStep, Trained, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
 use crate::cpu::{Acts, Body, Scratch, clip_grad_norm, host_slice, host_slice_mut};
@@ -65,15 +65,6 @@ pub(super) fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize) -> 
     (0..k).map(|j| Body::stacked(j, k, obs + act, hidden, 1)).collect()
 }
 
-/// What a fused critic step reports (the autograd path's `CriticStep`).
-pub(super) struct CriticOut {
-    pub loss: f64,
-    pub q_mean: f64,
-    pub target_mean: f64,
-    pub grad_norm: Option<f64>,
-    pub td_errors: Vec<f32>,
-}
-
 impl Work {
     /// Every critic of `bodies` (parameters `p`) on `x = [s | a]`; outputs in
     /// `self.critics[j].y`.
@@ -103,9 +94,9 @@ impl Work {
     /// y = r + γ(1 − terminal)·v, v per row from `value(row)` (eqs. 2, 7, 9).
     pub fn targets(&mut self, b: &Batch<'_>, gamma: f64, value: impl Fn(&Self, usize) -> f32) {
         let gamma = gamma as f32;
-        let y: Vec<f32> = (0..b.rows)
-            .map(|i| b.reward[i] + (1.0 - b.terminal[i]) * value(self, i) * gamma)
-            .collect();
+        let mut y = std::mem::take(&mut self.y); // reused: `value` reads the rest of `self`
+        y.clear();
+        y.extend((0..b.rows).map(|i| b.reward[i] + (1.0 - b.terminal[i]) * value(self, i) * gamma));
         self.y = y;
     }
 
@@ -120,7 +111,7 @@ impl Work {
         act: usize,
         clip: Option<f64>,
         update: u64,
-    ) -> Result<CriticOut, LearnerError> {
+    ) -> Result<CriticStep, LearnerError> {
         let rows = b.rows;
         let k = bodies.len();
         let Trained { net, opt, .. } = critic;
@@ -153,7 +144,7 @@ impl Work {
         }
         let grad_norm = clip.map(|c| clip_grad_norm(&mut self.critic_grad, c));
         opt.step_host(p, &self.critic_grad);
-        Ok(CriticOut {
+        Ok(CriticStep {
             loss,
             q_mean: q_sum / (k * rows) as f64,
             target_mean: self.y.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64,
@@ -208,16 +199,52 @@ impl Work {
         norm
     }
 
-    /// a = tanh(y) of the deterministic actors (DDPG, TD3) from the actor's last forward.
-    pub fn tanh_action(&mut self) {
+    /// The deterministic actors' (DDPG, TD3) action a = tanh(π(s)) into `self.a`, actor
+    /// parameters `actor_p`; the activations stay in `self.actor` for a backward pass.
+    pub fn tanh_action(&mut self, body: &Body, actor_p: &[f32], s: &[f32], rows: usize) {
+        body.forward(actor_p, s, rows, &mut self.actor);
         self.a.clear();
         self.a.extend(self.actor.y.iter().map(|v| v.tanh()));
     }
 
-    /// ∂/∂y of the deterministic actors' objective −mean min Q(s, tanh(y)), from `self.da`
-    /// and `self.a` (tanh's backward: ·(1 − a²)), into `self.dy`.
-    pub fn tanh_backward(&mut self) {
+    /// [`Work::critics_forward`] at the action of the last [`Work::tanh_action`].
+    pub fn critics_forward_at_action(&mut self, bodies: &[Body], p: &[f32], s: &[f32], act: usize, rows: usize) {
+        let a = std::mem::take(&mut self.a);
+        self.critics_forward(bodies, p, s, &a, act, rows);
+        self.a = a;
+    }
+
+    /// The deterministic actors' step, eqs. 3–5 (DDPG) and 8 (TD3): descend
+    /// J = −mean min_k Q_k(s, tanh π(s)) in θ against the critics `bodies` (parameters of
+    /// `critic`), tanh's backward ·(1 − a²) between. Fails, before stepping, on a non-finite
+    /// J. Returns (J, the gradient norm before clipping when clipping is on).
+    #[allow(clippy::too_many_arguments)]
+    pub fn deterministic_actor_step(
+        &mut self,
+        body: &Body,
+        bodies: &[Body],
+        actor: &mut Trained,
+        critic: &crate::nets::ParamSet,
+        b: &Batch<'_>,
+        obs: usize,
+        act: usize,
+        clip: Option<f64>,
+        update: u64,
+    ) -> Result<(f64, Option<f64>), LearnerError> {
+        let rows = b.rows;
+        // SAFETY: the actor's and the critic's buffers are only read until `actor_step`,
+        // which writes the actor's alone after these slices are dead.
+        let actor_p = unsafe { host_slice(actor.net.flat()) }.expect("host parameters");
+        self.tanh_action(body, actor_p, b.obs, rows);
+        let cp = unsafe { host_slice(critic.flat()) }.expect("host parameters");
+        self.critics_forward_at_action(bodies, cp, b.obs, act, rows);
+        let loss = -self.min_q_action_grad(bodies, cp, obs, act, rows);
+        if !loss.is_finite() {
+            return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: loss, update });
+        }
         self.dy.clear();
         self.dy.extend(self.da.iter().zip(&self.a).map(|(d, a)| d * (1.0 - a * a)));
+        let norm = self.actor_step(body, actor, b.obs, clip);
+        Ok((loss, norm))
     }
 }

@@ -229,18 +229,8 @@ impl Td3 {
 
         if self.c.updates % self.c.cfg.td3.policy_delay == 0 {
             // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, tanh π(s)) in θ.
-            actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.obs, rows, &mut w.actor);
-            w.tanh_action();
-            let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
-            let a = std::mem::take(&mut w.a);
-            w.critics_forward(&bodies, cp, b.obs, &a, na, rows);
-            w.a = a;
-            let actor_loss = -w.min_q_action_grad(&bodies, cp, o, na, rows);
-            if !actor_loss.is_finite() {
-                return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: actor_loss, update: self.c.updates });
-            }
-            w.tanh_backward();
-            let norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
+            let (actor_loss, norm) =
+                w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
             let tau = self.c.cfg.tau;
             self.target_actor.soft_update_from(&self.actor.net, tau);
             self.target_critic.soft_update_from(&self.critic.net, tau);
