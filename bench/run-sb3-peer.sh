@@ -3,6 +3,8 @@
 # gradient updates per second on CPU with 1 and 2 threads, the paper's sizes (obs 17, act 2,
 # 2x256 hidden, batch 128). Idempotent; run from anywhere. See bench/sb3_peer.py for what is timed.
 #   SECONDS_PER_CONFIG=5 (timed seconds per algorithm and thread count, both sides)
+#   ROUNDS=3 (peer, then ours, this many times in turn; the table gives each side's median and
+#     range, so a slow minute on a shared machine moves one sample, not the ratio)
 #   THREADS="1 2" (peer thread counts)   PEER_ONLY=1 (skip building/running ours)
 #   RUN_PREFIX="chrt -f 10" (prefix for both measured commands; on a shared machine, as root,
 #     real-time priority gives both sides near-exclusive cores; nice does not help across cgroups)
@@ -14,6 +16,7 @@ ROOT="$(dirname "$BENCH_DIR")"
 SB3_DIR="$BENCH_DIR/.sb3"   # git-ignored (bench/.gitignore)
 OUT="$BENCH_DIR/out"
 SECS="${SECONDS_PER_CONFIG:-5}"
+ROUNDS="${ROUNDS:-3}"
 THREADS="${THREADS:-1 2}"
 read -r -a THREAD_LIST <<< "$THREADS"
 read -r -a PREFIX <<< "${RUN_PREFIX:-}"
@@ -49,19 +52,23 @@ if [[ "${PEER_ONLY:-0}" != 1 ]]; then
     fi
 fi
 
-# 3. Both measurements, one after the other so they never share the cores.
-echo "== load: $(uptime)"
-echo "== peer: PYTHONPATH=$SB3_DIR ${PREFIX[*]} $PY $BENCH_DIR/sb3_peer.py --seconds $SECS --threads $THREADS $*"
-${PREFIX[@]+"${PREFIX[@]}"} "$PY" "$BENCH_DIR/sb3_peer.py" --seconds "$SECS" --threads "${THREAD_LIST[@]}" "$@" | tee "$OUT/sb3-peer.jsonl"
-if [[ "$HAVE_OURS" == 1 ]]; then
-    # The subcommand itself covers 1 and 2 threads (issue 4); pass --seconds when it has one.
-    OURS_ARGS=(--json)
-    if "$MAPLESS" bench learner --help 2>&1 | grep -q -- '--seconds'; then
-        OURS_ARGS+=(--seconds "$SECS")
-    fi
-    echo "== ours: ${PREFIX[*]} $MAPLESS bench learner ${OURS_ARGS[*]}"
-    ${PREFIX[@]+"${PREFIX[@]}"} "$MAPLESS" bench learner "${OURS_ARGS[@]}" | tee "$OUT/learner-ours.jsonl"
+# 3. Both measurements, one after the other so they never share the cores, ROUNDS times in turn.
+OURS_ARGS=(--json)
+if [[ "$HAVE_OURS" == 1 ]] && "$MAPLESS" bench learner --help 2>&1 | grep -q -- '--seconds'; then
+    OURS_ARGS+=(--seconds "$SECS")
 fi
+: > "$OUT/sb3-peer.jsonl"
+: > "$OUT/learner-ours.jsonl"
+for ((round = 1; round <= ROUNDS; round++)); do
+    echo "== round $round of $ROUNDS; load: $(uptime)"
+    echo "== peer: PYTHONPATH=$SB3_DIR ${PREFIX[*]} $PY $BENCH_DIR/sb3_peer.py --seconds $SECS --threads $THREADS $*"
+    ${PREFIX[@]+"${PREFIX[@]}"} "$PY" "$BENCH_DIR/sb3_peer.py" --seconds "$SECS" --threads "${THREAD_LIST[@]}" "$@" | tee -a "$OUT/sb3-peer.jsonl"
+    if [[ "$HAVE_OURS" == 1 ]]; then
+        # The subcommand itself covers 1 and 2 threads (issue 4).
+        echo "== ours: ${PREFIX[*]} $MAPLESS bench learner ${OURS_ARGS[*]}"
+        ${PREFIX[@]+"${PREFIX[@]}"} "$MAPLESS" bench learner "${OURS_ARGS[@]}" | tee -a "$OUT/learner-ours.jsonl"
+    fi
+done
 echo "== load: $(uptime)"
 
 # 4. The comparison, matched by (algorithm, threads). Accepts flat lines or the CLI's
@@ -80,25 +87,33 @@ def rows(path, bench="learner.updates_per_s"):
             value = r.get("updates_per_s", r.get("value"))
             if algo and value is not None and "threads" in r:
                 yield r.get("impl", "mapless"), algo, int(r["threads"]), float(value)
-ours, ceiling = {}, {}
+from statistics import median
+ours, ceiling, peer = {}, {}, {}
 for _, a, t, v in rows(sys.argv[1]):
-    ours.setdefault((a, t), v)  # the first line per (algo, threads) is the default configuration
+    ours.setdefault((a, t), []).append(v)  # one line per (algo, threads) and round
 for _, a, t, v in rows(sys.argv[1], "learner.f32_ceiling_updates_per_s"):
-    ceiling.setdefault((a, t), v)
-peer = {}
+    ceiling.setdefault((a, t), []).append(v)
 for impl, a, t, v in rows(sys.argv[2]):
-    peer.setdefault(impl, {})[(a, t)] = v
+    peer.setdefault(impl, {}).setdefault((a, t), []).append(v)
+def cell(vs):  # median, and the range when there is more than one round
+    m = median(vs)
+    return f"{m:,.1f}" + (f" ({min(vs):,.0f}-{max(vs):,.0f})" if len(vs) > 1 else "")
 print()
 impls = sorted(peer)
-print(f"{'algo':>5} {'threads':>7} {'ours upd/s':>11} {'f32 ceiling':>11} " + " ".join(f"{i + ' upd/s':>14} {'ours/' + i:>12} {'ceiling/' + i:>13}" for i in impls))
+print(f"{'algo':>5} {'threads':>7} {'ours upd/s':>19} {'f32 ceiling':>11} " + " ".join(f"{i + ' upd/s':>19} {'ours/' + i:>10} {'ceiling/' + i:>13}" for i in impls))
 for key in sorted(ours, key=lambda k: (["sac", "td3", "ddpg"].index(k[0]) if k[0] in ("sac", "td3", "ddpg") else 9, k[1])):
+    o = median(ours[key])
+    c = median(ceiling[key]) if key in ceiling else None
     cells = []
     for i in impls:
-        p = peer[i].get(key)
-        c = ceiling.get(key)
-        cells.append(f"{p:>14,.1f} {ours[key] / p:>11.2f}x {(f'{c / p:.2f}x' if c else '-'):>13}" if p else f"{'-':>14} {'-':>12} {'-':>13}")
-    c = ceiling.get(key)
-    print(f"{key[0]:>5} {key[1]:>7} {ours[key]:>11,.1f} {(f'{c:,.1f}' if c else '-'):>11} " + " ".join(cells))
+        ps = peer[i].get(key)
+        if ps:
+            p = median(ps)
+            cells.append(f"{cell(ps):>19} {o / p:>9.2f}x {(f'{c / p:.2f}x' if c else '-'):>13}")
+        else:
+            cells.append(f"{'-':>19} {'-':>10} {'-':>13}")
+    print(f"{key[0]:>5} {key[1]:>7} {cell(ours[key]):>19} {(f'{c:,.1f}' if c else '-'):>11} " + " ".join(cells))
+print(f"(medians over {max(len(v) for v in ours.values())} rounds, range in brackets; ratios are of the medians)")
 print("(target of issue 4: ours/sb3 >= 3x for SAC; 'f32 ceiling' is the updates/s that this machine's")
 print(" f32 matrix products alone allow (mapless_learner::ceiling), an estimate of the most any f32 code can do)")
 EOF

@@ -14,7 +14,7 @@
 //!   forward                      F(in, out) = in·H + H·H + H·out
 //!   weight gradients             F(in, out)           (every layer)
 //!   input gradients, hidden      H·H + H·out          (stops below the first layer)
-//!   input gradients, to input    F(in, out)           (∂Q/∂a through a critic)
+//!   input gradients, to actions  act·H + H·H + H·out  (∂Q/∂a through a critic; not ∂Q/∂s)
 //! ```
 //!
 //! Per update, `k` critics (`obs+act → 1`), actor `obs → K` (K = 2·act for SAC, act otherwise):
@@ -22,8 +22,9 @@
 //! ```text
 //!   target     actor forward on s′ (target actor for DDPG/TD3) + k target-critic forwards
 //!   critics    k × (forward + weight gradients + hidden input gradients)
-//!   actor      actor forward + k critic forwards + k critic input gradients
+//!   actor      actor forward + k critic forwards + one critic's gradients to actions
 //!              + actor weight gradients + actor hidden input gradients
+//!              (∂ min_k Q_k/∂a flows, row by row, through the smallest critic alone)
 //!              (TD3: on every `policy_delay`-th update only, so divided by the delay)
 //! ```
 //!
@@ -52,7 +53,8 @@ pub fn update_flops(cfg: &LearnerConfig, obs_dim: usize, act_dim: usize) -> f64 
     let actor = forward(o, actor_out);
     let target = actor + k * critic;
     let critics = k * (critic + critic + hidden_input_grads(1.0));
-    let actor_step = actor + k * critic + k * critic + actor + hidden_input_grads(actor_out);
+    let to_actions = a * h + hidden_input_grads(1.0);
+    let actor_step = actor + k * critic + to_actions + actor + hidden_input_grads(actor_out);
     2.0 * cfg.batch_size as f64 * (target + critics + actor_share * actor_step)
 }
 
@@ -107,13 +109,14 @@ mod tests {
         let actor = 17 * 256 + 256 * 256 + 256 * 4; // 70,912
         let target = actor + 2 * critic; // 212,224
         let critics = 2 * (2 * critic + 256 * 256 + 256); // 414,208
-        let actor_step = actor + 4 * critic + actor + 256 * 256 + 256 * 4; // 491,008
-        let macs: i64 = target + critics + actor_step; // 1,117,440 per row
-        assert_eq!(macs, 1_117_440);
+        let to_actions = 2 * 256 + 256 * 256 + 256; // 66,304
+        let actor_step = actor + 2 * critic + to_actions + actor + 256 * 256 + 256 * 4; // 416,000
+        let macs: i64 = target + critics + actor_step; // 1,042,432 per row
+        assert_eq!(macs, 1_042_432);
         let cfg = LearnerConfig::default();
         assert_eq!(cfg.algorithm, AlgorithmKind::Sac);
         let flops = update_flops(&cfg, 17, 2);
-        assert_eq!(flops, 2.0 * 128.0 * macs as f64); // 286,064,640
+        assert_eq!(flops, 2.0 * 128.0 * macs as f64); // 266,862,592
     }
 
     #[test]
@@ -128,12 +131,14 @@ mod tests {
         // half of it.
         let actor = (17 * 256 + 256 * 256 + 256 * 2) as f64;
         let critic = (19 * 256 + 256 * 256 + 256) as f64;
-        let actor_step = 2.0 * actor + 4.0 * critic + (256 * 256 + 256 * 2) as f64;
+        let to_actions = (2 * 256 + 256 * 256 + 256) as f64;
+        let actor_step = 2.0 * actor + 2.0 * critic + to_actions + (256 * 256 + 256 * 2) as f64;
         let diff = td3(1) - td3(2);
         assert!((diff - 2.0 * 128.0 * actor_step / 2.0).abs() < 1e-3, "{diff}");
         let ddpg = LearnerConfig { algorithm: AlgorithmKind::Ddpg, ..base };
         let one_critic = actor + critic + 2.0 * critic + (256 * 256 + 256) as f64 + 2.0 * actor
-            + 2.0 * critic
+            + critic
+            + to_actions
             + (256 * 256 + 256 * 2) as f64;
         assert_eq!(update_flops(&ddpg, 17, 2), 2.0 * 128.0 * one_critic);
     }

@@ -4,7 +4,7 @@
 //! bodies with their backward passes written out, and global-norm clipping on raw slices
 //! (Adam's host step is [`crate::optim::Adam::step_host`]).
 //!
-//! Why: at the paper's sizes a SAC update is 286 MFLOP of products, but through autograd each
+//! Why: at the paper's sizes a SAC update is 267 MFLOP of products, but through autograd each
 //! of its many small operations also pays dispatch, allocation and graph bookkeeping; that path
 //! reaches 0.5–0.6 of the products' f32 ceiling, this one about 0.8 (`mapless bench learner`
 //! prints both; docs/learner.md). Here every layer is one `sgemm` into a reused buffer, and
@@ -146,8 +146,10 @@ impl Body {
 
     /// Backward pass from `dy` (`[rows, output]`, ∂L/∂y) through the activations of the
     /// last [`Body::forward`] on `x`. Weight and bias gradients are *added* to `grad` (same
-    /// layout as the parameters) when it is given; ∂L/∂x is written to `dx` when given.
-    /// `scratch` holds the hidden-layer gradients.
+    /// layout as the parameters) when it is given; with `dx = Some((buf, from))`, ∂L/∂x of
+    /// inputs `from..` is written to `buf` (`[rows, input − from]`; `from` > 0 only for stacked
+    /// networks). `x` is read only for weight gradients. `scratch` holds the hidden-layer
+    /// gradients.
     #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
@@ -156,7 +158,7 @@ impl Body {
         act: &Acts,
         dy: &[f32],
         grad: Option<&mut [f32]>,
-        dx: Option<&mut [f32]>,
+        dx: Option<(&mut [f32], usize)>,
         scratch: &mut Scratch,
     ) {
         let rows = act.rows;
@@ -166,14 +168,14 @@ impl Body {
         let mut grad = grad;
         // out: dh2 = dy·Woutᵀ, masked by ReLU(h2) > 0.
         self.weight_grads(2, &act.h2, dy, rows, grad.as_deref_mut());
-        self.input_grad(2, p, dy, rows, &mut scratch.d2);
+        self.input_grad(2, p, dy, rows, &mut scratch.d2, 0);
         mask(&mut scratch.d2, &act.h2);
         self.weight_grads(1, &act.h1, &scratch.d2, rows, grad.as_deref_mut());
-        self.input_grad(1, p, &scratch.d2, rows, &mut scratch.d1);
+        self.input_grad(1, p, &scratch.d2, rows, &mut scratch.d1, 0);
         mask(&mut scratch.d1, &act.h1);
         self.weight_grads(0, x, &scratch.d1, rows, grad);
-        if let Some(dx) = dx {
-            self.input_grad(0, p, &scratch.d1, rows, dx);
+        if let Some((dx, from)) = dx {
+            self.input_grad(0, p, &scratch.d1, rows, dx, from);
         }
     }
 
@@ -194,10 +196,12 @@ impl Body {
         }
     }
 
-    /// `dx[rows, in] = dz·Wᵀ` for layer `l`.
-    fn input_grad(&self, l: usize, p: &[f32], dz: &[f32], rows: usize, dx: &mut [f32]) {
+    /// `dx[rows, in − from] = dz·Wᵀ` for layer `l`, inputs `from..` only (`from` > 0 needs the
+    /// input-major layout, where those inputs' weights are contiguous rows).
+    fn input_grad(&self, l: usize, p: &[f32], dz: &[f32], rows: usize, dx: &mut [f32], from: usize) {
         let (wo, (i, o)) = (self.off[l].0, self.dims[l]);
-        gemm(false, !self.out_major, rows, i, o, dz, &p[wo..wo + i * o], 0.0, dx);
+        assert!(from == 0 || !self.out_major, "input gradients from column {from} need the input-major layout");
+        gemm(false, !self.out_major, rows, i - from, o, dz, &p[wo + from * o..wo + i * o], 0.0, dx);
     }
 }
 
@@ -229,6 +233,16 @@ pub struct Scratch {
 /// ReLU that keeps NaN (as libtorch's does), so a diverged network still fails the finite-loss
 /// check instead of being masked to zero.
 fn relu(v: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU supports AVX, checked just above.
+        unsafe { x86::relu(v) };
+        return;
+    }
+    relu_scalar(v);
+}
+
+fn relu_scalar(v: &mut [f32]) {
     for x in v {
         *x = if *x < 0.0 { 0.0 } else { *x };
     }
@@ -236,10 +250,78 @@ fn relu(v: &mut [f32]) {
 
 /// ReLU's backward (`threshold_backward`): zero the gradient where the output was ≤ 0.
 fn mask(d: &mut [f32], out: &[f32]) {
-    // A select, not a conditional store, so that it vectorises.
+    assert_eq!(d.len(), out.len(), "mask sizes");
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU supports AVX, checked just above; the lengths are equal.
+        unsafe { x86::mask(d, out) };
+        return;
+    }
+    mask_scalar(d, out);
+}
+
+fn mask_scalar(d: &mut [f32], out: &[f32]) {
     for (g, &o) in d.iter_mut().zip(out) {
         *g = if o <= 0.0 { 0.0 } else { *g };
     }
+}
+
+/// ReLU and its mask in AVX, written out: as plain loops LLVM turns their in-place selects into
+/// AVX masked stores, which are microcoded and several times slower on AMD cores.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::x86_64::*;
+
+    /// `max(0, x)` with x second: `maxps` returns its second operand when either is NaN, and
+    /// for −0.0 — exactly `if x < 0 { 0 } else { x }`.
+    #[target_feature(enable = "avx")]
+    pub unsafe fn relu(v: &mut [f32]) {
+        let zero = _mm256_setzero_ps();
+        let mut chunks = v.chunks_exact_mut(8);
+        for c in &mut chunks {
+            let p = c.as_mut_ptr();
+            // SAFETY: `c` holds 8 floats; unaligned loads/stores.
+            unsafe { _mm256_storeu_ps(p, _mm256_max_ps(zero, _mm256_loadu_ps(p))) };
+        }
+        super::relu_scalar(chunks.into_remainder());
+    }
+
+    /// `g & (o > 0 or o is NaN)`: the gradient kept unless the output was ≤ 0.
+    #[target_feature(enable = "avx")]
+    pub unsafe fn mask(d: &mut [f32], out: &[f32]) {
+        let zero = _mm256_setzero_ps();
+        let mut chunks = d.chunks_exact_mut(8);
+        let mut outs = out.chunks_exact(8);
+        for (c, o) in (&mut chunks).zip(&mut outs) {
+            let p = c.as_mut_ptr();
+            // SAFETY: `c` and `o` hold 8 floats each; unaligned loads/stores.
+            unsafe {
+                let keep = _mm256_cmp_ps::<_CMP_NLE_UQ>(_mm256_loadu_ps(o.as_ptr()), zero);
+                _mm256_storeu_ps(p, _mm256_and_ps(_mm256_loadu_ps(p), keep));
+            }
+        }
+        super::mask_scalar(chunks.into_remainder(), outs.remainder());
+    }
+}
+
+/// Runs `f` compiled for AVX2 when this CPU has it (checked once), else for the baseline
+/// x86-64 the crate is built for (SSE2). Adam's host step and the clipping norm then use
+/// 8-wide instead of 4-wide vectors; AVX2 alone permits no fused multiply-add, so the results
+/// are bit-identical either way.
+#[inline(always)]
+pub(crate) fn wide<R>(f: impl FnOnce() -> R) -> R {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        fn avx2<R>(f: impl FnOnce() -> R) -> R {
+            f()
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2, checked just above.
+            return unsafe { avx2(f) };
+        }
+    }
+    f()
 }
 
 /// The f32 contents of a contiguous CPU tensor, or `None` for anything else.
@@ -275,13 +357,24 @@ pub unsafe fn host_slice_mut(t: &Tensor) -> Option<&mut [f32]> {
 }
 
 /// Global L2 norm of `g`, and `g` scaled to `max_norm` when above it — what
-/// [`crate::optim::clip_grad_norm`] does to a tensor.
+/// [`crate::optim::clip_grad_norm`] does to a tensor. The squares are summed in f64 over eight
+/// interleaved partial sums (one long dependent chain of adds cost ~4 % of a SAC update).
 pub fn clip_grad_norm(g: &mut [f32], max_norm: f64) -> f64 {
-    let norm = g.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>().sqrt();
+    let norm = wide(|| {
+        let mut acc = [0.0f64; 8];
+        let chunks = g.chunks_exact(8);
+        let tail = chunks.remainder().iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>();
+        for c in chunks {
+            for (a, &v) in acc.iter_mut().zip(c) {
+                *a += f64::from(v) * f64::from(v);
+            }
+        }
+        (acc.iter().sum::<f64>() + tail).sqrt()
+    });
     let coef = max_norm / (norm + 1e-6);
     if coef < 1.0 {
         let c = coef as f32;
-        g.iter_mut().for_each(|v| *v *= c);
+        wide(|| g.iter_mut().for_each(|v| *v *= c));
     }
     norm
 }
@@ -352,8 +445,15 @@ mod tests {
             close(&act.y, &want_y, 1e-5);
             let mut grad = vec![0.0f32; p.len()];
             let mut dx = vec![0.0f32; rows * input];
-            body.backward(p, &xs, &act, &dy, Some(&mut grad), Some(&mut dx), &mut Scratch::default());
+            body.backward(p, &xs, &act, &dy, Some(&mut grad), Some((&mut dx, 0)), &mut Scratch::default());
             close(&dx, &want_dx, 1e-5);
+            if pick.is_some() {
+                // Only the last two inputs' gradients (the critics' action columns).
+                let mut tail = vec![0.0f32; rows * 2];
+                body.backward(p, &[], &act, &dy, None, Some((&mut tail, input - 2)), &mut Scratch::default());
+                let want_tail: Vec<f32> = want_dx.chunks_exact(input).flat_map(|r| r[input - 2..].to_vec()).collect();
+                close(&tail, &want_tail, 1e-5);
+            }
             // The stack's other network gets no gradient from network 1's output.
             close(&grad, &want_grad, 1e-5);
         }
@@ -372,6 +472,26 @@ mod tests {
         let mut d = vec![1.0f32, 2.0, 3.0];
         mask(&mut d, &[f32::NAN, -1.0, 0.0]);
         assert_eq!(d, vec![1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn vector_relu_and_mask_agree_with_the_scalar_rule_bit_for_bit() {
+        // 8-wide chunks plus a tail, with every special value in both.
+        let special = [f32::NAN, -f32::NAN, -0.0, 0.0, f32::INFINITY, f32::NEG_INFINITY, -1e-38, 1e-38, -2.5, 3.5];
+        let v: Vec<f32> = (0..37).map(|i| special[(i * 7) % special.len()] * if i % 4 == 3 { -1.0 } else { 1.0 }).collect();
+        let scalar_relu = |x: f32| if x < 0.0 { 0.0 } else { x };
+        let mut r = v.clone();
+        relu(&mut r);
+        for (x, y) in v.iter().zip(&r) {
+            assert_eq!(scalar_relu(*x).to_bits(), y.to_bits(), "relu({x}) gave {y}");
+        }
+        let g: Vec<f32> = (0..37).map(|i| i as f32 - 18.5).collect();
+        let mut d = g.clone();
+        mask(&mut d, &v);
+        for ((o, g0), d) in v.iter().zip(&g).zip(&d) {
+            let want = if *o <= 0.0 { 0.0 } else { *g0 };
+            assert_eq!(want.to_bits(), d.to_bits(), "mask(out {o}) of {g0} gave {d}");
+        }
     }
 
     #[test]

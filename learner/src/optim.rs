@@ -109,12 +109,14 @@ impl Adam {
         let step_size = (self.lr / (1.0 - beta1.powi(t))) as f32;
         let sqrt_bc2 = (1.0 - beta2.powi(t)).sqrt() as f32;
         let (w1, w2, eps) = ((1.0 - beta1) as f32, (1.0 - beta2) as f32, eps as f32);
-        for (((p, &g), m), v) in params.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
-            *m += w1 * (g - *m);
-            *v += w2 * (g * g - *v);
-            let denom = v.sqrt() / sqrt_bc2 + eps;
-            *p -= step_size * *m / denom;
-        }
+        crate::cpu::wide(|| {
+            for (((p, &g), m), v) in params.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
+                *m += w1 * (g - *m);
+                *v += w2 * (g * g - *v);
+                let denom = v.sqrt() / sqrt_bc2 + eps;
+                *p -= step_size * *m / denom;
+            }
+        })
     }
 
     /// The moments, for checkpoints: `(exp_avg, exp_avg_sq)`.

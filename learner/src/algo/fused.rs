@@ -46,7 +46,7 @@ pub(crate) struct Work {
     pub scratch: Scratch,
     /// Per critic, ∂L/∂Q `[B]`.
     pub dq: Vec<Vec<f32>>,
-    /// ∂L/∂x through one critic.
+    /// ∂L/∂a through one critic (the action columns of ∂L/∂[s | a]).
     pub dx: Vec<f32>,
     /// ∂L/∂a summed over the critics `[B, act]`.
     pub da: Vec<f32>,
@@ -58,6 +58,11 @@ pub(crate) struct Work {
     pub y: Vec<f32>,
     /// An action `[B, act]` (the deterministic actors' tanh output).
     pub a: Vec<f32>,
+    /// Rows where one critic is the minimum, and those rows' activations and ∂L/∂Q
+    /// ([`Work::min_q_action_grad`]).
+    sel: Vec<usize>,
+    sub: Acts,
+    sub_dq: Vec<f32>,
 }
 
 /// The `k` critics of a [`crate::nets::stacked_mlp_specs`] stack on `obs + act` inputs.
@@ -170,15 +175,36 @@ impl Work {
                 self.dq[j][i] = if self.critics[j].y[i] == q { g / ties } else { 0.0 };
             }
         }
-        let width = obs + act;
+        let hidden = bodies.first().map_or(0, Body::hidden);
         self.da.clear();
         self.da.resize(rows * act, 0.0);
-        self.dx.resize(rows * width, 0.0);
+        self.dx.resize(rows * act, 0.0);
         for (j, body) in bodies.iter().enumerate() {
-            body.backward(p, &self.x, &self.critics[j], &self.dq[j], None, Some(&mut self.dx), &mut self.scratch);
-            for i in 0..rows {
+            // Only the rows where critic j is the minimum carry gradient: with two critics
+            // about half of them. Backing those alone up is the same sum (every other row
+            // of ∂Q_j is 0), and saves a hidden-by-hidden product per critic pair. Only the
+            // action columns of ∂Q/∂[s | a] are formed; no weight gradient, so no input rows.
+            self.sel.clear();
+            self.sel.extend((0..rows).filter(|&i| self.dq[j][i] != 0.0));
+            let n = self.sel.len();
+            if n == rows {
+                body.backward(p, &[], &self.critics[j], &self.dq[j], None, Some((&mut self.dx, obs)), &mut self.scratch);
+            } else {
+                let (sub, full) = (&mut self.sub, &self.critics[j]);
+                sub.rows = n;
+                for (buf, src) in [(&mut sub.h1, &full.h1), (&mut sub.h2, &full.h2)] {
+                    buf.clear();
+                    for &i in &self.sel {
+                        buf.extend_from_slice(&src[i * hidden..(i + 1) * hidden]);
+                    }
+                }
+                self.sub_dq.clear();
+                self.sub_dq.extend(self.sel.iter().map(|&i| self.dq[j][i]));
+                body.backward(p, &[], sub, &self.sub_dq, None, Some((&mut self.dx[..n * act], obs)), &mut self.scratch);
+            }
+            for (r, &i) in self.sel.iter().enumerate() {
                 for c in 0..act {
-                    self.da[i * act + c] += self.dx[i * width + obs + c];
+                    self.da[i * act + c] += self.dx[r * act + c];
                 }
             }
         }
