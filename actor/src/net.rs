@@ -74,6 +74,7 @@ pub struct GrpcEndpoint {
     tls_domain: Option<String>,
     token: Option<String>,
     connect_timeout: Duration,
+    stream_window: Option<u32>,
 }
 
 impl std::fmt::Debug for GrpcEndpoint {
@@ -116,6 +117,7 @@ impl GrpcEndpoint {
             tls_domain: None,
             token: None,
             connect_timeout: Duration::from_secs(5),
+            stream_window: None,
         }
     }
 
@@ -172,6 +174,15 @@ impl GrpcEndpoint {
         self
     }
 
+    /// HTTP/2 flow-control window of each stream on connections this endpoint dials: how many
+    /// bytes a server may send on one stream before this side has read them [default: the
+    /// transport's, 2 MiB]. A small window bounds how much a server can push ahead of a slow
+    /// reader (see `GrpcSource`, which sizes it to its prefetch).
+    pub fn with_stream_window(mut self, bytes: u32) -> Self {
+        self.stream_window = Some(bytes);
+        self
+    }
+
     /// The URI dialled.
     pub fn uri(&self) -> &str {
         &self.uri
@@ -197,7 +208,8 @@ impl GrpcEndpoint {
             .tcp_nodelay(true)
             .http2_keep_alive_interval(Duration::from_secs(10))
             .keep_alive_timeout(Duration::from_secs(20))
-            .keep_alive_while_idle(true);
+            .keep_alive_while_idle(true)
+            .initial_stream_window_size(self.stream_window);
         match &self.tls_ca_pem {
             Some(ca) => {
                 let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(ca));

@@ -9,8 +9,9 @@ use std::time::{Duration, Instant};
 
 use mapless_learner::LearnerError;
 use mapless_learner::source::{
-    GrpcEndpoint, GrpcSource, GrpcSourceConfig, InProcess, ReplaySource,
+    GrpcEndpoint, GrpcSource, GrpcSourceConfig, InProcess, ReplaySource, sample_stream_window,
 };
+use prost::Message;
 use mapless_proto::v1::{SampledBatch, TransitionBatch};
 use mapless_proto::{Transition, TransitionBatchBuilder};
 use mapless_replay::server::{Security, ServeOptions, ServerError, TlsPem, serve};
@@ -281,10 +282,14 @@ fn grpc_source_delivers_minibatches_of_the_configured_shape() {
 fn priorities_sent_through_the_grpc_source_reach_the_table() {
     let table = filled_table(prioritized(), 50);
     let replay = Replay::start(Arc::clone(&table), ServeOptions::default());
-    let mut source = GrpcSource::start(config(replay.endpoint())).expect("start");
+    let cfg = config(replay.endpoint());
+    let mut source = GrpcSource::start(cfg.clone()).expect("start");
     let first = next(&mut source);
     check_batch(&first);
     let favourite = first.keys[0];
+    // Let the server push all it may: what it drew before the update is what flow control let
+    // it get ahead of this reader.
+    std::thread::sleep(Duration::from_millis(500));
     let keys = all_keys(&table);
     let priorities: Vec<f32> = keys
         .iter()
@@ -304,10 +309,26 @@ fn priorities_sent_through_the_grpc_source_reach_the_table() {
         "only the favourite is drawn: {:?}",
         sampled.keys
     );
-    // Minibatches drawn after the update, through the source, show it too.
-    eventually("source minibatches follow the new priorities", || {
-        next(&mut source).keys.iter().all(|&k| k == favourite)
-    });
+    // Minibatches drawn after the update, through the source, show it too, after at most what
+    // was in flight. In bytes: the stream's HTTP/2 window (sized to the prefetch), two chunks
+    // of up to 32 KiB (tonic's yield threshold, overshot by at most one message) that hyper may
+    // hold past it (one handed to h2, one waiting for capacity) and one 16 KiB frame tonic's
+    // decoder may hold. In minibatches: `prefetch` drawn and waiting at the server, one being
+    // drawn, `queue_depth` decoded here and one the sample task holds. With the transport's
+    // default 2 MiB window this was thousands of minibatches.
+    let len = first.encoded_len();
+    let window = sample_stream_window(&cfg, OBS, ACT) as usize;
+    let bytes = window + 2 * (32 * 1024 + len) + 16 * 1024;
+    let in_flight = bytes.div_ceil(len) + cfg.server_prefetch as usize + 1 + cfg.queue_depth + 1;
+    let mut stale = 0;
+    while !next(&mut source).keys.iter().all(|&k| k == favourite) {
+        stale += 1;
+        assert!(
+            stale <= in_flight,
+            "more than {in_flight} minibatches drawn before the update arrived after it"
+        );
+    }
+    eprintln!("{stale} minibatches drawn before the update (bound {in_flight})");
     assert_eq!(source.stats().priority_update_errors, 0);
 }
 
