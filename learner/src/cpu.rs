@@ -20,6 +20,8 @@ use std::os::raw::{c_char, c_int};
 
 use tch::Tensor;
 
+use crate::lanes::Lanes;
+
 unsafe extern "C" {
     /// BLAS single-precision GEMM, Fortran (column-major) interface, LP64 integers; exported
     /// by `libtorch_cpu.so` (MKL) and resolved at link time like every libtorch symbol.
@@ -149,7 +151,8 @@ impl Body {
     /// layout as the parameters) when it is given; with `dx = Some((buf, from))`, ∂L/∂x of
     /// inputs `from..` is written to `buf` (`[rows, input − from]`; `from` > 0 only for stacked
     /// networks). `x` is read only for weight gradients. `scratch` holds the hidden-layer
-    /// gradients.
+    /// gradients. With two `lanes`, the hidden layer's weight gradient and input gradient (the
+    /// two hidden-by-hidden products) run side by side.
     #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
@@ -160,6 +163,7 @@ impl Body {
         grad: Option<&mut [f32]>,
         dx: Option<(&mut [f32], usize)>,
         scratch: &mut Scratch,
+        lanes: &Lanes,
     ) {
         let rows = act.rows;
         let h = self.hidden();
@@ -170,8 +174,16 @@ impl Body {
         self.weight_grads(2, &act.h2, dy, rows, grad.as_deref_mut());
         self.input_grad(2, p, dy, rows, &mut scratch.d2, 0);
         mask(&mut scratch.d2, &act.h2);
-        self.weight_grads(1, &act.h1, &scratch.d2, rows, grad.as_deref_mut());
-        self.input_grad(1, p, &scratch.d2, rows, &mut scratch.d1, 0);
+        let (d2, d1) = (&scratch.d2, &mut scratch.d1);
+        match grad.as_deref_mut() {
+            Some(g) => {
+                lanes.join(
+                    || self.weight_grads(1, &act.h1, d2, rows, Some(g)),
+                    || self.input_grad(1, p, d2, rows, d1, 0),
+                );
+            }
+            None => self.input_grad(1, p, d2, rows, d1, 0),
+        }
         mask(&mut scratch.d1, &act.h1);
         self.weight_grads(0, x, &scratch.d1, rows, grad);
         if let Some((dx, from)) = dx {
@@ -356,11 +368,32 @@ pub unsafe fn host_slice_mut(t: &Tensor) -> Option<&mut [f32]> {
     Some(unsafe { std::slice::from_raw_parts_mut(t.data_ptr() as *mut f32, n) })
 }
 
-/// Global L2 norm of `g`, and `g` scaled to `max_norm` when above it — what
-/// [`crate::optim::clip_grad_norm`] does to a tensor. The squares are summed in f64 over eight
-/// interleaved partial sums (one long dependent chain of adds cost ~4 % of a SAC update).
-pub fn clip_grad_norm(g: &mut [f32], max_norm: f64) -> f64 {
-    let norm = wide(|| {
+/// `target ← lerp(target, source, τ)`, Polyak averaging of a target network's flat buffer, with
+/// libtorch's two forms of `lerp` (t + τ(s − t) for τ < ½, s − (s − t)(1 − τ) otherwise, so
+/// τ = 1 copies exactly), without its fused multiply-add. Each half on its own lane.
+pub fn soft_update(target: &mut [f32], source: &[f32], tau: f64, lanes: &Lanes) {
+    assert_eq!(target.len(), source.len(), "soft update sizes");
+    let tau = tau as f32;
+    let half = target.len() / 2;
+    let (t0, t1) = target.split_at_mut(half);
+    let (s0, s1) = source.split_at(half);
+    let run = |target: &mut [f32], source: &[f32]| {
+        wide(|| {
+            if tau < 0.5 {
+                target.iter_mut().zip(source).for_each(|(t, &s)| *t += tau * (s - *t));
+            } else {
+                let rest = 1.0 - tau;
+                target.iter_mut().zip(source).for_each(|(t, &s)| *t = s - (s - *t) * rest);
+            }
+        })
+    };
+    lanes.join(|| run(t0, s0), || run(t1, s1));
+}
+
+/// Σ g² in f64 over eight interleaved partial sums (one long dependent chain of adds cost ~4 %
+/// of a SAC update).
+fn sum_squares(g: &[f32]) -> f64 {
+    wide(|| {
         let mut acc = [0.0f64; 8];
         let chunks = g.chunks_exact(8);
         let tail = chunks.remainder().iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>();
@@ -369,12 +402,23 @@ pub fn clip_grad_norm(g: &mut [f32], max_norm: f64) -> f64 {
                 *a += f64::from(v) * f64::from(v);
             }
         }
-        (acc.iter().sum::<f64>() + tail).sqrt()
-    });
+        acc.iter().sum::<f64>() + tail
+    })
+}
+
+/// Global L2 norm of `g`, and `g` scaled to `max_norm` when above it — what
+/// [`crate::optim::clip_grad_norm`] does to a tensor. The norm is summed over the two halves of
+/// `g` separately (on two lanes when there are), then added, so it does not depend on the lanes.
+pub fn clip_grad_norm(g: &mut [f32], max_norm: f64, lanes: &Lanes) -> f64 {
+    let half = g.len() / 2;
+    let (g0, g1) = g.split_at_mut(half);
+    let (a, b) = lanes.join(|| sum_squares(g0), || sum_squares(g1));
+    let norm = (a + b).sqrt();
     let coef = max_norm / (norm + 1e-6);
     if coef < 1.0 {
         let c = coef as f32;
-        wide(|| g.iter_mut().for_each(|v| *v *= c));
+        let scale = |g: &mut [f32]| wide(|| g.iter_mut().for_each(|v| *v *= c));
+        lanes.join(|| scale(g0), || scale(g1));
     }
     norm
 }
@@ -383,7 +427,7 @@ pub fn clip_grad_norm(g: &mut [f32], max_norm: f64) -> f64 {
 mod tests {
     use super::*;
     use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_forward, stacked_mlp_specs};
-    use rand::SeedableRng;
+    use rand::{Rng, SeedableRng};
 
     fn close(a: &[f32], b: &[f32], tol: f32) {
         assert_eq!(a.len(), b.len());
@@ -423,7 +467,10 @@ mod tests {
         // The second network of a two-network critic stack.
         let stack = ParamSet::new(stacked_mlp_specs("c", 2, input as i64, hidden as i64, 1, &mut rng), tch::Device::Cpu).unwrap();
         let second = Body::stacked(1, 2, input, hidden, 1);
-        for (set, body, pick) in [(&set, body, None), (&stack, second, Some(1i64))] {
+        for ((set, body, pick), lanes) in [(&set, body, None), (&stack, second, Some(1i64))]
+            .into_iter()
+            .flat_map(|case| [(case, Lanes::default()), (case, Lanes::started())])
+        {
             let y = match pick {
                 None => mlp_forward(set.params(), &x),
                 Some(j) => stacked_mlp_forward(set.params(), &x, true).get(j),
@@ -445,12 +492,12 @@ mod tests {
             close(&act.y, &want_y, 1e-5);
             let mut grad = vec![0.0f32; p.len()];
             let mut dx = vec![0.0f32; rows * input];
-            body.backward(p, &xs, &act, &dy, Some(&mut grad), Some((&mut dx, 0)), &mut Scratch::default());
+            body.backward(p, &xs, &act, &dy, Some(&mut grad), Some((&mut dx, 0)), &mut Scratch::default(), &lanes);
             close(&dx, &want_dx, 1e-5);
             if pick.is_some() {
                 // Only the last two inputs' gradients (the critics' action columns).
                 let mut tail = vec![0.0f32; rows * 2];
-                body.backward(p, &[], &act, &dy, None, Some((&mut tail, input - 2)), &mut Scratch::default());
+                body.backward(p, &[], &act, &dy, None, Some((&mut tail, input - 2)), &mut Scratch::default(), &lanes);
                 let want_tail: Vec<f32> = want_dx.chunks_exact(input).flat_map(|r| r[input - 2..].to_vec()).collect();
                 close(&tail, &want_tail, 1e-5);
             }
@@ -497,10 +544,31 @@ mod tests {
     #[test]
     fn clipping_matches_the_tensor_version() {
         let mut g = vec![3.0f32, 4.0];
-        assert!((clip_grad_norm(&mut g, 1.0) - 5.0).abs() < 1e-9);
+        assert!((clip_grad_norm(&mut g, 1.0, &Lanes::ONE) - 5.0).abs() < 1e-9);
         close(&g, &[0.6, 0.8], 1e-6);
         let mut small = vec![0.3f32, 0.4];
-        clip_grad_norm(&mut small, 1.0);
+        clip_grad_norm(&mut small, 1.0, &Lanes::started());
         assert_eq!(small, vec![0.3, 0.4]);
+    }
+
+    #[test]
+    fn soft_update_matches_libtorch_lerp_and_copies_at_tau_one() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let n = 1000; // not a multiple of 8: the vector loop's tail too
+        let src: Vec<f32> = (0..n).map(|_| rng.random_range(-3.0..3.0)).collect();
+        let dst0: Vec<f32> = (0..n).map(|_| rng.random_range(-3.0..3.0)).collect();
+        for tau in [0.001, 0.005, 0.5, 0.9, 1.0] {
+            let mut host = dst0.clone();
+            soft_update(&mut host, &src, tau, &Lanes::started());
+            let mut t = Tensor::from_slice(&dst0);
+            let _ = t.lerp_(&Tensor::from_slice(&src), tau);
+            close(&host, &Vec::<f32>::try_from(&t).unwrap(), 1e-6);
+            if tau == 1.0 {
+                assert_eq!(host, src, "τ = 1 is a copy");
+            }
+        }
+        let mut host = dst0.clone();
+        soft_update(&mut host, &src, 0.0, &Lanes::ONE);
+        assert_eq!(host, dst0, "τ = 0 leaves the target");
     }
 }

@@ -97,7 +97,8 @@ impl Adam {
     /// flat buffers as slices (CPU only; the moments must be CPU tensors, which they are
     /// whenever the parameters are). Same arithmetic in f32 as the tensor version, which
     /// `lerp`s with weight 1 − β < ½ (m + (1 − β)(g − m)).
-    pub(crate) fn step_host(&mut self, params: &mut [f32], grad: &[f32]) {
+    /// Each half of the buffer on its own lane (the step is elementwise: same result).
+    pub(crate) fn step_host(&mut self, params: &mut [f32], grad: &[f32], lanes: &crate::lanes::Lanes) {
         // SAFETY: the moments are this optimiser's own buffers, not shared with any tensor or
         // slice alive during this call.
         let m = unsafe { crate::cpu::host_slice_mut(&self.exp_avg) }.expect("Adam moments on the host");
@@ -109,14 +110,22 @@ impl Adam {
         let step_size = (self.lr / (1.0 - beta1.powi(t))) as f32;
         let sqrt_bc2 = (1.0 - beta2.powi(t)).sqrt() as f32;
         let (w1, w2, eps) = ((1.0 - beta1) as f32, (1.0 - beta2) as f32, eps as f32);
-        crate::cpu::wide(|| {
-            for (((p, &g), m), v) in params.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
-                *m += w1 * (g - *m);
-                *v += w2 * (g * g - *v);
-                let denom = v.sqrt() / sqrt_bc2 + eps;
-                *p -= step_size * *m / denom;
-            }
-        })
+        let run = |params: &mut [f32], grad: &[f32], m: &mut [f32], v: &mut [f32]| {
+            crate::cpu::wide(|| {
+                for (((p, &g), m), v) in params.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
+                    *m += w1 * (g - *m);
+                    *v += w2 * (g * g - *v);
+                    let denom = v.sqrt() / sqrt_bc2 + eps;
+                    *p -= step_size * *m / denom;
+                }
+            })
+        };
+        let half = params.len() / 2;
+        let (p0, p1) = params.split_at_mut(half);
+        let (g0, g1) = grad.split_at(half);
+        let (m0, m1) = m.split_at_mut(half);
+        let (v0, v1) = v.split_at_mut(half);
+        lanes.join(|| run(p0, g0, m0, v0), || run(p1, g1, m1, v1));
     }
 
     /// The moments, for checkpoints: `(exp_avg, exp_avg_sq)`.
@@ -197,7 +206,7 @@ mod tests {
         let mut b = Adam::new(3, tch::Device::Cpu, 0.1, AdamConfig::default());
         for g in g {
             a.step(&p, &Tensor::from_slice(&g));
-            b.step_host(&mut host, &g);
+            b.step_host(&mut host, &g, &crate::lanes::Lanes::started());
         }
         let want = Vec::<f32>::try_from(&p).unwrap();
         for (x, y) in host.iter().zip(&want) {

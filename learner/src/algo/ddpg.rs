@@ -190,6 +190,7 @@ impl Ddpg {
         let actor_body = Body::single(o, h, na);
         let bodies = fused::critic_bodies(1, o, na, h);
         let w = &mut self.host;
+        let _blas = w.begin();
 
         // Eq. 2: y = r + γ(1 − terminal) Q_t(s′, tanh π_t(s′)).
         w.tanh_action(&actor_body, unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows);
@@ -203,8 +204,8 @@ impl Ddpg {
             w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
 
         let tau = self.c.cfg.tau;
-        self.target_actor.soft_update_from(&self.actor.net, tau);
-        self.target_critic.soft_update_from(&self.critic.net, tau);
+        fused::soft_update(&mut self.target_actor, &self.actor.net, tau, &w.lanes);
+        fused::soft_update(&mut self.target_critic, &self.critic.net, tau, &w.lanes);
         self.c.updates += 1;
         let mut scalars = vec![
             (metric::CRITIC_LOSS, critic.loss),

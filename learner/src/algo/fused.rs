@@ -10,6 +10,7 @@ use super::{CriticStep, Trained, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
 use crate::cpu::{Acts, Body, Scratch, clip_grad_norm, host_slice, host_slice_mut};
+use crate::lanes::Lanes;
 
 /// A minibatch's columns as host slices.
 pub(super) struct Batch<'a> {
@@ -36,18 +37,27 @@ pub(super) fn batch(b: &Minibatch) -> Option<Batch<'_>> {
     })
 }
 
+/// [`crate::nets::ParamSet::soft_update_from`] on the host buffers ([`crate::cpu::soft_update`]):
+/// one loop, no libtorch call.
+pub(super) fn soft_update(target: &mut crate::nets::ParamSet, source: &crate::nets::ParamSet, tau: f64, lanes: &Lanes) {
+    // SAFETY: two different networks' buffers; nothing else reads or writes either meanwhile.
+    let t = unsafe { host_slice_mut(target.flat()) }.expect("host parameters");
+    let s = unsafe { host_slice(source.flat()) }.expect("host parameters");
+    crate::cpu::soft_update(t, s, tau, lanes);
+}
+
 /// Reused buffers of a fused update.
 #[derive(Debug, Default)]
 pub(crate) struct Work {
     /// Critic input `[B, obs + act]` of the last [`Work::critics_forward`].
     pub x: Vec<f32>,
     pub actor: Acts,
+    /// The actor's activations on s′ (SAC, computed beside those on s).
+    pub actor_next: Acts,
     pub critics: Vec<Acts>,
     pub scratch: Scratch,
     /// Per critic, ∂L/∂Q `[B]`.
     pub dq: Vec<Vec<f32>>,
-    /// ∂L/∂a through one critic (the action columns of ∂L/∂[s | a]).
-    pub dx: Vec<f32>,
     /// ∂L/∂a summed over the critics `[B, act]`.
     pub da: Vec<f32>,
     /// ∂L/∂(actor output).
@@ -58,11 +68,53 @@ pub(crate) struct Work {
     pub y: Vec<f32>,
     /// An action `[B, act]` (the deterministic actors' tanh output).
     pub a: Vec<f32>,
-    /// Rows where one critic is the minimum, and those rows' activations and ∂L/∂Q
+    /// Per critic, its backward pass through the rows where it is the minimum
     /// ([`Work::min_q_action_grad`]).
+    min_rows: Vec<MinRows>,
+    /// Standard-normal draws of this update.
+    pub noise: Vec<f32>,
+    /// One lane, or two when libtorch has ≥ 2 intra-op threads ([`Work::begin`]).
+    pub lanes: Lanes,
+}
+
+/// One critic's share of ∂(min_k Q_k)/∂a: the rows where it is the minimum, their activations
+/// and ∂L/∂Q, and ∂L/∂a of those rows (the action columns of ∂L/∂[s | a]).
+#[derive(Debug, Default)]
+struct MinRows {
     sel: Vec<usize>,
     sub: Acts,
-    sub_dq: Vec<f32>,
+    dq: Vec<f32>,
+    dx: Vec<f32>,
+    scratch: Scratch,
+}
+
+impl MinRows {
+    /// Backs critic `body` (parameters `p`, activations `full`, ∂L/∂Q `dq` over all rows) up
+    /// through the rows with a non-zero ∂L/∂Q only: the same sum, since every other row
+    /// carries zero gradient, for about half the rows with two critics. Only the action
+    /// columns (from `obs`) are formed; no weight gradient, so no input rows are needed.
+    fn backward(&mut self, body: &Body, p: &[f32], full: &Acts, dq: &[f32], obs: usize, act: usize) {
+        let rows = full.rows;
+        let hidden = body.hidden();
+        self.sel.clear();
+        self.sel.extend((0..rows).filter(|&i| dq[i] != 0.0));
+        let n = self.sel.len();
+        self.dx.resize(n * act, 0.0);
+        if n == rows {
+            body.backward(p, &[], full, dq, None, Some((&mut self.dx, obs)), &mut self.scratch, &Lanes::ONE);
+        } else {
+            self.sub.rows = n;
+            for (buf, src) in [(&mut self.sub.h1, &full.h1), (&mut self.sub.h2, &full.h2)] {
+                buf.clear();
+                for &i in &self.sel {
+                    buf.extend_from_slice(&src[i * hidden..(i + 1) * hidden]);
+                }
+            }
+            self.dq.clear();
+            self.dq.extend(self.sel.iter().map(|&i| dq[i]));
+            body.backward(p, &[], &self.sub, &self.dq, None, Some((&mut self.dx, obs)), &mut self.scratch, &Lanes::ONE);
+        }
+    }
 }
 
 /// The `k` critics of a [`crate::nets::stacked_mlp_specs`] stack on `obs + act` inputs.
@@ -71,6 +123,14 @@ pub(super) fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize) -> 
 }
 
 impl Work {
+    /// Call at the start of every fused update: sets the lanes up the first time and, with
+    /// two, makes this thread's BLAS single-threaded until the guard drops (each lane is one
+    /// thread; the products of one update are too small to split well).
+    pub fn begin(&mut self) -> crate::lanes::BlasGuard {
+        self.lanes.configure();
+        self.lanes.single_threaded_blas()
+    }
+
     /// Every critic of `bodies` (parameters `p`) on `x = [s | a]`; outputs in
     /// `self.critics[j].y`.
     pub fn critics_forward(&mut self, bodies: &[Body], p: &[f32], s: &[f32], a: &[f32], act: usize, rows: usize) {
@@ -82,8 +142,16 @@ impl Work {
             out[obs..].copy_from_slice(&a[r * act..(r + 1) * act]);
         }
         self.critics.resize_with(bodies.len(), Acts::default);
-        for (body, acts) in bodies.iter().zip(self.critics.iter_mut()) {
-            body.forward(p, &self.x, rows, acts);
+        let x = &self.x;
+        match (bodies, &mut self.critics[..]) {
+            ([b0, b1], [c0, c1]) => {
+                self.lanes.join(|| b0.forward(p, x, rows, c0), || b1.forward(p, x, rows, c1));
+            }
+            _ => {
+                for (body, acts) in bodies.iter().zip(self.critics.iter_mut()) {
+                    body.forward(p, x, rows, acts);
+                }
+            }
         }
     }
 
@@ -145,10 +213,10 @@ impl Work {
         self.critic_grad.clear();
         self.critic_grad.resize(p.len(), 0.0);
         for (j, body) in bodies.iter().enumerate() {
-            body.backward(p, &self.x, &self.critics[j], &self.dq[j], Some(&mut self.critic_grad), None, &mut self.scratch);
+            body.backward(p, &self.x, &self.critics[j], &self.dq[j], Some(&mut self.critic_grad), None, &mut self.scratch, &self.lanes);
         }
-        let grad_norm = clip.map(|c| clip_grad_norm(&mut self.critic_grad, c));
-        opt.step_host(p, &self.critic_grad);
+        let grad_norm = clip.map(|c| clip_grad_norm(&mut self.critic_grad, c, &self.lanes));
+        opt.step_host(p, &self.critic_grad, &self.lanes);
         Ok(CriticStep {
             loss,
             q_mean: q_sum / (k * rows) as f64,
@@ -175,36 +243,28 @@ impl Work {
                 self.dq[j][i] = if self.critics[j].y[i] == q { g / ties } else { 0.0 };
             }
         }
-        let hidden = bodies.first().map_or(0, Body::hidden);
         self.da.clear();
         self.da.resize(rows * act, 0.0);
-        self.dx.resize(rows * act, 0.0);
-        for (j, body) in bodies.iter().enumerate() {
-            // Only the rows where critic j is the minimum carry gradient: with two critics
-            // about half of them. Backing those alone up is the same sum (every other row
-            // of ∂Q_j is 0), and saves a hidden-by-hidden product per critic pair. Only the
-            // action columns of ∂Q/∂[s | a] are formed; no weight gradient, so no input rows.
-            self.sel.clear();
-            self.sel.extend((0..rows).filter(|&i| self.dq[j][i] != 0.0));
-            let n = self.sel.len();
-            if n == rows {
-                body.backward(p, &[], &self.critics[j], &self.dq[j], None, Some((&mut self.dx, obs)), &mut self.scratch);
-            } else {
-                let (sub, full) = (&mut self.sub, &self.critics[j]);
-                sub.rows = n;
-                for (buf, src) in [(&mut sub.h1, &full.h1), (&mut sub.h2, &full.h2)] {
-                    buf.clear();
-                    for &i in &self.sel {
-                        buf.extend_from_slice(&src[i * hidden..(i + 1) * hidden]);
-                    }
-                }
-                self.sub_dq.clear();
-                self.sub_dq.extend(self.sel.iter().map(|&i| self.dq[j][i]));
-                body.backward(p, &[], sub, &self.sub_dq, None, Some((&mut self.dx[..n * act], obs)), &mut self.scratch);
+        self.min_rows.resize_with(k, MinRows::default);
+        let (critics, dq) = (&self.critics, &self.dq);
+        match (bodies, &mut self.min_rows[..]) {
+            ([b0, b1], [m0, m1]) => {
+                self.lanes.join(
+                    || m0.backward(b0, p, &critics[0], &dq[0], obs, act),
+                    || m1.backward(b1, p, &critics[1], &dq[1], obs, act),
+                );
             }
-            for (r, &i) in self.sel.iter().enumerate() {
+            _ => {
+                for (j, (body, m)) in bodies.iter().zip(self.min_rows.iter_mut()).enumerate() {
+                    m.backward(body, p, &critics[j], &dq[j], obs, act);
+                }
+            }
+        }
+        // Summed in critic order, as one lane would.
+        for m in &self.min_rows {
+            for (r, &i) in m.sel.iter().enumerate() {
                 for c in 0..act {
-                    self.da[i * act + c] += self.dx[r * act + c];
+                    self.da[i * act + c] += m.dx[r * act + c];
                 }
             }
         }
@@ -219,9 +279,9 @@ impl Work {
         let p = unsafe { host_slice_mut(net.flat()) }.expect("host parameters");
         self.actor_grad.clear();
         self.actor_grad.resize(p.len(), 0.0);
-        body.backward(p, obs, &self.actor, &self.dy, Some(&mut self.actor_grad), None, &mut self.scratch);
-        let norm = clip.map(|c| clip_grad_norm(&mut self.actor_grad, c));
-        opt.step_host(p, &self.actor_grad);
+        body.backward(p, obs, &self.actor, &self.dy, Some(&mut self.actor_grad), None, &mut self.scratch, &self.lanes);
+        let norm = clip.map(|c| clip_grad_norm(&mut self.actor_grad, c, &self.lanes));
+        opt.step_host(p, &self.actor_grad, &self.lanes);
         norm
     }
 

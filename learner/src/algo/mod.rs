@@ -489,13 +489,21 @@ pub(crate) struct NoiseSource {
 impl NoiseSource {
     /// `[rows, cols]` of N(0, 1) on `device`.
     pub fn normal(&mut self, rows: usize, cols: usize, device: tch::Device) -> Tensor {
-        self.buf.clear();
-        let rng = &mut self.rng;
-        self.buf
-            .extend((0..rows * cols).map(|_| -> f32 { StandardNormal.sample(rng) }));
-        Tensor::from_slice(&self.buf)
+        let mut buf = std::mem::take(&mut self.buf);
+        self.fill(&mut buf, rows * cols);
+        let t = Tensor::from_slice(&buf)
             .view([rows as i64, cols as i64])
-            .to_device(device)
+            .to_device(device);
+        self.buf = buf;
+        t
+    }
+
+    /// `n` draws of N(0, 1) into `out` (cleared first): the same stream as [`Self::normal`],
+    /// for the fused updates, which need no tensor.
+    pub fn fill(&mut self, out: &mut Vec<f32>, n: usize) {
+        out.clear();
+        let rng = &mut self.rng;
+        out.extend((0..n).map(|_| -> f32 { StandardNormal.sample(rng) }));
     }
 }
 

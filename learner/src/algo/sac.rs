@@ -43,7 +43,7 @@ use tch::Tensor;
 use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, finite, fused, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
-use crate::cpu::{Body, host_slice};
+use crate::cpu::{Body, host_slice, host_slice_mut};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -363,20 +363,31 @@ impl Sac {
         // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
         // soft update after the last read.
         let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
-        let eps_next_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
-        let eps_now_t = self.c.noise.normal(rows, na, tch::Device::Cpu);
-        let (eps_next, eps_now) = (unsafe { host_slice(&eps_next_t) }.expect("host noise"), unsafe { host_slice(&eps_now_t) }.expect("host noise"));
-        let alpha = self.alpha();
+        // ε for s′, then ε for s: one stream, in the libtorch path's order.
+        let mut eps = std::mem::take(&mut self.host.0.noise);
+        self.c.noise.fill(&mut eps, 2 * rows * na);
+        let (eps_next, eps_now) = eps.split_at(rows * na);
+        let log_alpha = unsafe { host_slice(self.log_alpha.net.flat()) }.expect("host parameters")[0];
+        let alpha = f64::from(log_alpha).exp();
         let alpha32 = alpha as f32;
         let (lo, hi) = (self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, 2 * na);
         let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
         let (w, head) = (&mut self.host.0, &mut self.host.1);
+        let _blas = w.begin();
+
+        // The actor on s′ (for the targets) beside the actor on s (for eq. 11; the critic step
+        // in between leaves the actor as it is).
+        let ap = unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters");
+        let (on_next, on_now) = (&mut w.actor_next, &mut w.actor);
+        w.lanes.join(
+            || actor_body.forward(ap, b.next_obs, rows, on_next),
+            || actor_body.forward(ap, b.obs, rows, on_now),
+        );
 
         // 1. Targets, eq. 9: y = r + γ(1 − terminal)(min_k Q_tk(s′, ã′) − α ln π(ã′|s′)).
-        actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
-        head.sample(&w.actor.y, eps_next, rows, na, lo, hi);
+        head.sample(&w.actor_next.y, eps_next, rows, na, lo, hi);
         let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, tp, b.next_obs, &head.a, na, rows);
         w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i) - head.log_prob[i] * alpha32);
@@ -385,7 +396,6 @@ impl Sac {
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
 
         // 3. Actor, eq. 11, against the critics just updated: J = mean(α ln π − min_k Q_k).
-        actor_body.forward(unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters"), b.obs, rows, &mut w.actor);
         head.sample(&w.actor.y, eps_now, rows, na, lo, hi);
         let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, cp, b.obs, &head.a, na, rows);
@@ -421,10 +431,11 @@ impl Sac {
         let mean_log_prob = head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
         let alpha_loss = -alpha * (mean_log_prob + self.target_entropy);
         if self.c.cfg.sac.autotune_alpha {
-            let grad = Tensor::from_slice(&[alpha_loss as f32]);
-            self.log_alpha.opt.step(self.log_alpha.net.flat(), &grad);
+            // SAFETY: log α's one-float buffer; no other view of it is alive.
+            let la = unsafe { host_slice_mut(self.log_alpha.net.flat()) }.expect("host parameters");
+            self.log_alpha.opt.step_host(la, &[alpha_loss as f32], &crate::lanes::Lanes::ONE);
         }
-        self.target_critic.soft_update_from(&self.critic.net, self.c.cfg.tau);
+        fused::soft_update(&mut self.target_critic, &self.critic.net, self.c.cfg.tau, &w.lanes);
         self.c.updates += 1;
 
         let mut scalars = vec![
@@ -438,6 +449,7 @@ impl Sac {
         ];
         scalars.extend(critic_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
         scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
+        self.host.0.noise = eps;
         Ok(Some(UpdateStats { scalars, td_errors }))
     }
 }

@@ -199,12 +199,13 @@ impl Td3 {
         // soft update after the last read.
         let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
         let (std, limit) = (self.c.cfg.td3.target_noise_std as f32, self.c.cfg.td3.target_noise_clip as f32);
-        let z = self.c.noise.normal(rows, na, tch::Device::Cpu);
-        let z = unsafe { host_slice(&z) }.expect("host noise");
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, na);
         let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
         let w = &mut self.host;
+        let _blas = w.begin();
+        let mut z = std::mem::take(&mut w.noise);
+        self.c.noise.fill(&mut z, rows * na);
 
         // Eq. 7: y = r + γ(1 − terminal) min_k Q_tk(s′, clip(tanh π_t(s′) + clip(ε), −1, 1)).
         actor_body.forward(unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
@@ -212,9 +213,10 @@ impl Td3 {
             .actor
             .y
             .iter()
-            .zip(z)
+            .zip(&z)
             .map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0))
             .collect();
+        w.noise = z;
         let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, tp, b.next_obs, &next, na, rows);
         w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
@@ -232,8 +234,8 @@ impl Td3 {
             let (actor_loss, norm) =
                 w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
             let tau = self.c.cfg.tau;
-            self.target_actor.soft_update_from(&self.actor.net, tau);
-            self.target_critic.soft_update_from(&self.critic.net, tau);
+            fused::soft_update(&mut self.target_actor, &self.actor.net, tau, &w.lanes);
+            fused::soft_update(&mut self.target_critic, &self.critic.net, tau, &w.lanes);
             scalars.push((metric::ACTOR_LOSS, actor_loss));
             scalars.extend(norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
         }

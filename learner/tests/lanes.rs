@@ -1,0 +1,73 @@
+//! The fused CPU update with two lanes (libtorch set to ≥ 2 intra-op threads: a helper thread
+//! runs independent products beside the caller, each single-threaded) computes exactly what it
+//! computes with one: every parameter, target, optimiser moment and statistic bit for bit.
+//!
+//! Its own test binary, because it changes libtorch's process-wide intra-op thread count.
+
+use mapless_learner::TorchThreads;
+use mapless_learner::algo::Agent;
+use mapless_learner::batch::{BatchColumns, Minibatch};
+use mapless_learner::config::{AlgorithmKind, LearnerConfig};
+use rand::{Rng, SeedableRng};
+
+fn threads(n: usize) {
+    TorchThreads { intra_op: n, inter_op: 1 }.apply().expect("thread counts");
+}
+
+fn batch(rng: &mut rand_pcg::Pcg64, rows: usize, obs: usize, act: usize) -> Minibatch {
+    let mut u = |n: usize, lo: f32, hi: f32| -> Vec<f32> { (0..n).map(|_| rng.random_range(lo..hi)).collect() };
+    let (o, o2, a, r, w) = (u(rows * obs, -1.0, 1.0), u(rows * obs, -1.0, 1.0), u(rows * act, -1.0, 1.0), u(rows, -1.0, 1.0), u(rows, 0.2, 1.0));
+    let terminal: Vec<bool> = (0..rows).map(|i| i % 7 == 0).collect();
+    Minibatch::from_columns(
+        BatchColumns {
+            rows,
+            obs_dim: obs,
+            act_dim: act,
+            obs: &o,
+            action: &a,
+            reward: &r,
+            next_obs: &o2,
+            terminal: &terminal,
+            importance_weights: &w,
+            keys: &[],
+        },
+        tch::Device::Cpu,
+    )
+    .expect("minibatch")
+}
+
+#[test]
+fn two_lanes_update_bit_for_bit_as_one() {
+    let (obs, act, rows) = (17usize, 2usize, 64usize);
+    for kind in [AlgorithmKind::Sac, AlgorithmKind::Td3, AlgorithmKind::Ddpg] {
+        let cfg = LearnerConfig {
+            algorithm: kind,
+            hidden_width: 96,
+            seed: 5,
+            grad_clip_norm: Some(0.5),
+            ..LearnerConfig::default()
+        };
+        // Each agent picks its lanes at its first update, from the thread count then.
+        threads(1);
+        let mut one = Agent::new(&cfg, obs, act).unwrap();
+        threads(2);
+        let mut two = Agent::new(&cfg, obs, act).unwrap();
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        for step in 0..5 {
+            let b = batch(&mut rng, rows, obs, act);
+            threads(1);
+            let s1 = one.update(&b).unwrap();
+            threads(2);
+            let s2 = two.update(&b).unwrap();
+            assert_eq!(s1.scalars, s2.scalars, "{kind:?} step {step}: statistics");
+            assert_eq!(s1.td_errors, s2.td_errors, "{kind:?} step {step}: TD errors");
+        }
+        threads(1);
+        let (a, b) = (one.state_tensors(), two.state_tensors());
+        assert_eq!(a.len(), b.len());
+        for ((na, ta), (nb, tb)) in a.iter().zip(&b) {
+            assert_eq!(na, nb);
+            assert!(ta.equal(tb), "{kind:?} {na}: differs between one lane and two");
+        }
+    }
+}
