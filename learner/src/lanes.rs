@@ -3,10 +3,11 @@
 //! critics' forward passes, a layer's weight gradient beside its input gradient, the actor on
 //! `s` beside the actor on `s′`) run side by side instead of each being split across threads.
 //!
-//! Why: at the paper's sizes one 128×256×256 product is too small to split well — two
-//! libtorch (OpenMP) threads multiply at ~1.5× one thread's rate on the development machine —
-//! while two such products on two threads run at ~1.9× (`bench/README.md`). The results do
-//! not depend on the lanes: every product and sum is the one the single-lane path computes.
+//! Why: at the paper's sizes one 128×256×256 product is small; split across OpenMP threads it
+//! pays a barrier per product, and on a shared VM a late thread stalls both. Whole products
+//! per thread were faster for SAC with two threads in every A/B run (docs/learner.md). The
+//! results do not depend on the lanes: every product and sum is the one the single-lane path
+//! computes (`tests/lanes.rs`).
 //!
 //! A [`Lanes`] is idle (`join` runs both closures in turn on the caller) unless libtorch has
 //! ≥ 2 intra-op threads and its BLAS is MKL, whose thread count can be set per thread.
