@@ -212,6 +212,12 @@ impl Lanes {
         impl Drop for Wait<'_> {
             fn drop(&mut self) {
                 wait_until(&self.0.state, |s| s == DONE, std::thread::park);
+                if std::thread::panicking() {
+                    // `a` is unwinding: its panic wins; leave the slot ready for the next join.
+                    // SAFETY: DONE: the helper is done with the slot.
+                    drop(unsafe { (*self.0.panic.get()).take() });
+                    self.0.state.store(IDLE, Ordering::Release);
+                }
                 self.1.set(false);
             }
         }
@@ -315,6 +321,28 @@ mod tests {
         let payload = caught.expect_err("the helper's panic comes back");
         assert_eq!(payload.downcast_ref::<&str>(), Some(&"boom on the helper"));
         assert_eq!(lanes.join(|| 2, || 3), (2, 3));
+    }
+
+    #[test]
+    fn a_panic_on_the_caller_waits_for_the_helper_and_leaves_the_lanes_usable() {
+        let lanes = two_lanes();
+        if lanes.count() < 2 {
+            eprintln!("skipped: this libtorch's BLAS is not MKL, so there is one lane");
+            return;
+        }
+        let finished = std::sync::atomic::AtomicBool::new(false);
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            lanes.join(
+                || -> u32 { panic!("boom on the caller") },
+                || {
+                    std::thread::sleep(Duration::from_millis(20));
+                    finished.store(true, Ordering::SeqCst);
+                },
+            )
+        }));
+        assert!(caught.is_err());
+        assert!(finished.load(Ordering::SeqCst), "join unwound only after the helper finished");
+        assert_eq!(lanes.join(|| 4, || 5), (4, 5));
     }
 
     #[test]
