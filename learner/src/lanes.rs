@@ -6,8 +6,8 @@
 //! Why: at the paper's sizes one 128×256×256 product is small; split across OpenMP threads it
 //! pays a barrier per product, and on a shared VM a late thread stalls both. Whole products
 //! per thread were faster for SAC with two threads in every A/B run (docs/learner.md). The
-//! results do not depend on the lanes: every product and sum is the one the single-lane path
-//! computes (`tests/lanes.rs`).
+//! results with two lanes are those of one lane with single-threaded BLAS (libtorch at one
+//! intra-op thread): every product and sum is the same (`tests/lanes.rs`).
 //!
 //! A [`Lanes`] is idle (`join` runs both closures in turn on the caller) unless libtorch has
 //! ≥ 2 intra-op threads and its BLAS is MKL, whose thread count can be set per thread.
@@ -28,6 +28,11 @@ const EXIT: u8 = 3;
 /// How long a waiting side spins before it parks: longer than most waits inside an update,
 /// short enough that an idle helper leaves the core to the actors.
 const SPIN: Duration = Duration::from_micros(1000);
+
+/// Whether a fused update can run on two lanes in this process (libtorch's BLAS is MKL).
+pub fn available() -> bool {
+    mkl_set_local().is_some()
+}
 
 /// MKL's per-thread thread count (`MKL_Set_Num_Threads_Local`), found at run time so that a
 /// libtorch built on another BLAS still links (and simply gets no second lane).
@@ -171,8 +176,8 @@ impl Lanes {
     /// lanes (each lane is one thread); does nothing otherwise.
     pub fn single_threaded_blas(&self) -> BlasGuard {
         match (&self.helper, mkl_set_local()) {
-            (Some(_), Some(f)) => BlasGuard(Some((f, set_local_blas_threads(f, 1)))),
-            _ => BlasGuard(None),
+            (Some(_), Some(f)) => BlasGuard(Some((f, set_local_blas_threads(f, 1))), std::marker::PhantomData),
+            _ => BlasGuard(None, std::marker::PhantomData),
         }
     }
 
@@ -208,11 +213,13 @@ impl Lanes {
         if let Some(t) = &helper.thread {
             t.thread().unpark();
         }
-        struct Wait<'a>(&'a Slot, &'a Cell<bool>);
+        /// Waits for the helper; `armed` until `a` has returned, so a drop while armed is
+        /// `a` unwinding.
+        struct Wait<'a>(&'a Slot, &'a Cell<bool>, bool);
         impl Drop for Wait<'_> {
             fn drop(&mut self) {
                 wait_until(&self.0.state, |s| s == DONE, std::thread::park);
-                if std::thread::panicking() {
+                if self.2 {
                     // `a` is unwinding: its panic wins; leave the slot ready for the next join.
                     // SAFETY: DONE: the helper is done with the slot.
                     drop(unsafe { (*self.0.panic.get()).take() });
@@ -222,8 +229,9 @@ impl Lanes {
             }
         }
         self.busy.set(true);
-        let wait = Wait(slot, &self.busy);
+        let mut wait = Wait(slot, &self.busy, true);
         let ra = a();
+        wait.2 = false;
         drop(wait);
         // SAFETY: DONE: the helper has finished and wrote `panic` before publishing it.
         let panic = unsafe { (*slot.panic.get()).take() };
@@ -267,7 +275,8 @@ impl Drop for Helper {
 }
 
 /// Restores this thread's BLAS thread count on drop ([`Lanes::single_threaded_blas`]).
-pub(crate) struct BlasGuard(Option<(unsafe extern "C" fn(c_int) -> c_int, c_int)>);
+/// Not `Send`: the setting it restores is its thread's.
+pub(crate) struct BlasGuard(Option<(unsafe extern "C" fn(c_int) -> c_int, c_int)>, std::marker::PhantomData<*const ()>);
 
 impl Drop for BlasGuard {
     fn drop(&mut self) {

@@ -20,7 +20,7 @@ pub mod algo;
 pub mod batch;
 pub mod ceiling;
 mod cpu;
-mod lanes;
+pub mod lanes;
 pub mod checkpoint;
 pub mod driver;
 pub mod config;

@@ -103,7 +103,7 @@ impl Adam {
         // slice alive during this call.
         let m = unsafe { crate::cpu::host_slice_mut(&self.exp_avg) }.expect("Adam moments on the host");
         let v = unsafe { crate::cpu::host_slice_mut(&self.exp_avg_sq) }.expect("Adam moments on the host");
-        assert!(m.len() == params.len() && grad.len() == params.len(), "Adam sizes");
+        assert!(m.len() == params.len() && v.len() == params.len() && grad.len() == params.len(), "Adam sizes");
         self.step += 1;
         let AdamConfig { beta1, beta2, eps } = self.cfg;
         let t = i32::try_from(self.step).unwrap_or(i32::MAX);

@@ -559,12 +559,14 @@ async fn connect_client(
         .max_encoding_message_size(MAX_MESSAGE_BYTES))
 }
 
-/// Most bytes one encoded minibatch of `rows` rows takes: per row the key, probability,
+/// About the bytes one encoded minibatch of `rows` rows takes: per row the key, probability,
 /// weight, reward, flags, episode id, step and policy version (varints at their longest),
-/// plus the float columns; 64 bytes for the header fields and gRPC's 5-byte frame prefix.
+/// plus the float columns; 128 bytes for the header fields, the columns' tags and lengths and a
+/// short table name, and gRPC's 5-byte frame prefix. Saturates instead of overflowing.
 pub fn minibatch_wire_bytes(rows: u32, obs_dim: usize, act_dim: usize) -> u64 {
-    let per_row = 10 + 8 + 4 + 4 + 1 + 1 + 10 + 5 + 10 + 4 * (2 * obs_dim + act_dim) as u64;
-    64 + 5 + u64::from(rows) * per_row
+    let floats = (obs_dim as u64).saturating_mul(2).saturating_add(act_dim as u64);
+    let per_row = (10 + 8 + 4 + 4 + 1 + 1 + 10 + 5 + 10u64).saturating_add(floats.saturating_mul(4));
+    (128 + 5u64).saturating_add(u64::from(rows).saturating_mul(per_row))
 }
 
 /// HTTP/2 window of the Sample stream's connection: room for `prefetch` minibatches (at least
@@ -574,7 +576,7 @@ pub fn minibatch_wire_bytes(rows: u32, obs_dim: usize, act_dim: usize) -> u64 {
 /// and waiting at the server and `queue_depth` decoded here.
 pub fn sample_stream_window(config: &GrpcSourceConfig, obs_dim: usize, act_dim: usize) -> u32 {
     let bytes = u64::from(config.server_prefetch.max(1))
-        * minibatch_wire_bytes(config.batch_size, obs_dim, act_dim);
+        .saturating_mul(minibatch_wire_bytes(config.batch_size, obs_dim, act_dim));
     // 2³¹ − 1 is HTTP/2's largest window.
     bytes.clamp(16 * 1024, (1 << 31) - 1) as u32
 }
