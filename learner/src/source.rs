@@ -13,8 +13,8 @@
 //! once whenever the replay service keeps up; decoding happens off the update thread. The
 //! stream's flow-control window is sized to the prefetch, so a priority update shows in the
 //! minibatches within about `server_prefetch` + `queue_depth` of them (plus what the transport
-//! buffers, ~64 KiB), not after the megabytes a default HTTP/2 window lets the server push ahead. When the
-//! stream breaks (the service restarts, the network drops) it reconnects with exponential
+//! buffers, ~64 KiB), not after the megabytes a default HTTP/2 window lets the server push
+//! ahead. When the stream breaks (the service restarts, the network drops) it reconnects with exponential
 //! backoff and the update loop merely waits. Errors that retrying cannot fix (wrong table,
 //! wrong token, a protocol or dims mismatch) stop the source: `next_batch` returns
 //! [`LearnerError::ReplaySourceStopped`] from then on.

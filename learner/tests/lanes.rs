@@ -7,34 +7,12 @@
 
 use mapless_learner::TorchThreads;
 use mapless_learner::algo::Agent;
-use mapless_learner::batch::{BatchColumns, Minibatch};
+use mapless_learner::batch::Minibatch;
 use mapless_learner::config::{AlgorithmKind, LearnerConfig};
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 
 fn threads(n: usize) {
     TorchThreads { intra_op: n, inter_op: 1 }.apply().expect("thread counts");
-}
-
-fn batch(rng: &mut rand_pcg::Pcg64, rows: usize, obs: usize, act: usize) -> Minibatch {
-    let mut u = |n: usize, lo: f32, hi: f32| -> Vec<f32> { (0..n).map(|_| rng.random_range(lo..hi)).collect() };
-    let (o, o2, a, r, w) = (u(rows * obs, -1.0, 1.0), u(rows * obs, -1.0, 1.0), u(rows * act, -1.0, 1.0), u(rows, -1.0, 1.0), u(rows, 0.2, 1.0));
-    let terminal: Vec<bool> = (0..rows).map(|i| i % 7 == 0).collect();
-    Minibatch::from_columns(
-        BatchColumns {
-            rows,
-            obs_dim: obs,
-            act_dim: act,
-            obs: &o,
-            action: &a,
-            reward: &r,
-            next_obs: &o2,
-            terminal: &terminal,
-            importance_weights: &w,
-            keys: &[],
-        },
-        tch::Device::Cpu,
-    )
-    .expect("minibatch")
 }
 
 #[test]
@@ -59,7 +37,7 @@ fn two_lanes_update_bit_for_bit_as_one() {
         let mut two = Agent::new(&cfg, obs, act).unwrap();
         let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
         for step in 0..5 {
-            let b = batch(&mut rng, rows, obs, act);
+            let b = Minibatch::random(rows, obs, act, &mut rng, tch::Device::Cpu).expect("minibatch");
             threads(1);
             let s1 = one.update(&b).unwrap();
             threads(2);

@@ -367,8 +367,7 @@ impl Sac {
         let mut eps = std::mem::take(&mut self.host.0.noise);
         self.c.noise.fill(&mut eps, 2 * rows * na);
         let (eps_next, eps_now) = eps.split_at(rows * na);
-        let log_alpha = unsafe { host_slice(self.log_alpha.net.flat()) }.expect("host parameters")[0];
-        let alpha = f64::from(log_alpha).exp();
+        let alpha = self.alpha();
         let alpha32 = alpha as f32;
         let (lo, hi) = (self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
         let clip = self.c.cfg.grad_clip_norm;
