@@ -8,6 +8,8 @@
 #   THREADS="1 2" (peer thread counts)   PEER_ONLY=1 (skip building/running ours)
 #   RUN_PREFIX="chrt -f 10" (prefix for both measured commands; on a shared machine, as root,
 #     real-time priority gives both sides near-exclusive cores; nice does not help across cgroups)
+#   PEER_FTZ=1 (the peer runs with torch.set_flush_denormal(True); see sb3_peer.py; the table
+#     names its columns sb3+ftz, cleanrl+ftz)
 #   Extra arguments go to sb3_peer.py (e.g. --impls sb3 --algos sac).
 set -euo pipefail
 
@@ -20,6 +22,8 @@ ROUNDS="${ROUNDS:-3}"
 THREADS="${THREADS:-1 2}"
 read -r -a THREAD_LIST <<< "$THREADS"
 read -r -a PREFIX <<< "${RUN_PREFIX:-}"
+PEER_ARGS=()
+[[ "${PEER_FTZ:-0}" == 1 ]] && PEER_ARGS+=(--flush-denormal)
 # Pure-Python wheels plus numpy, installed with --no-deps next to the repository's torch 2.13.0
 # (.torch/venv, from scripts/setup-torch.sh), so torch is never downloaded twice. This is the
 # complete runtime set for SB3's SAC/TD3/DDPG (typing_extensions comes with torch).
@@ -61,8 +65,8 @@ fi
 : > "$OUT/learner-ours.jsonl"
 for ((round = 1; round <= ROUNDS; round++)); do
     echo "== round $round of $ROUNDS; load: $(uptime)"
-    echo "== peer: PYTHONPATH=$SB3_DIR ${PREFIX[*]} $PY $BENCH_DIR/sb3_peer.py --seconds $SECS --threads $THREADS $*"
-    ${PREFIX[@]+"${PREFIX[@]}"} "$PY" "$BENCH_DIR/sb3_peer.py" --seconds "$SECS" --threads "${THREAD_LIST[@]}" "$@" | tee -a "$OUT/sb3-peer.jsonl"
+    echo "== peer: PYTHONPATH=$SB3_DIR ${PREFIX[*]} $PY $BENCH_DIR/sb3_peer.py --seconds $SECS --threads $THREADS ${PEER_ARGS[*]} $*"
+    ${PREFIX[@]+"${PREFIX[@]}"} "$PY" "$BENCH_DIR/sb3_peer.py" --seconds "$SECS" --threads "${THREAD_LIST[@]}" ${PEER_ARGS[@]+"${PEER_ARGS[@]}"} "$@" | tee -a "$OUT/sb3-peer.jsonl"
     if [[ "$HAVE_OURS" == 1 ]]; then
         # The subcommand itself covers 1 and 2 threads (issue 4).
         echo "== ours: ${PREFIX[*]} $MAPLESS bench learner ${OURS_ARGS[*]}"
@@ -86,7 +90,8 @@ def rows(path, bench="learner.updates_per_s"):
             algo = str(r.get("algo") or r.get("bench", "").rsplit(".", 1)[-1]).lower()
             value = r.get("updates_per_s", r.get("value"))
             if algo and value is not None and "threads" in r:
-                yield r.get("impl", "mapless"), algo, int(r["threads"]), float(value)
+                impl = r.get("impl", "mapless") + ("+ftz" if r.get("flush_denormal") else "")
+                yield impl, algo, int(r["threads"]), float(value)
 from statistics import median
 ours, ceiling, peer = {}, {}, {}
 for _, a, t, v in rows(sys.argv[1]):

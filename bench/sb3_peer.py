@@ -43,6 +43,14 @@ Threads: torch.set_num_threads(T) and torch.set_num_interop_threads(T). The inte
 be set only once per process, so the parent starts one child process per thread count (with
 OMP/MKL/OpenBLAS thread variables also set to T) and relays its JSON lines.
 
+Subnormal floats: by default the peer runs as its users do, with the CPU's IEEE default.
+`--flush-denormal` calls torch.set_flush_denormal(True) first, which treats subnormal floats
+as 0 on the calling thread (so for all the work with 1 thread; torch's OpenMP workers keep the
+default). It matters on Intel CPUs, where each operation on a subnormal costs a microcode
+assist, and Adam's first moment of a parameter with zero gradient (a dead ReLU unit) shrinks
+into the subnormal range and stays there. mapless stores such moments as 0 (learner/src/optim.rs),
+so this flag is the like-for-like setting for that; run-sb3-peer.sh passes it with PEER_FTZ=1.
+
 Output: one JSON object per line on stdout, e.g.
   {"bench": "learner", "impl": "sb3", "algo": "sac", "threads": 1, "updates_per_s": 321.0, ...}
 """
@@ -77,6 +85,12 @@ def parse_args():
         "--chunk", type=int, default=0, help="gradient steps per timed train() call, even; 0: about 1/20 of --seconds"
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--flush-denormal",
+        action="store_true",
+        help="torch.set_flush_denormal(True) first (subnormal floats read and written as 0 on the"
+        " calling thread, i.e. all of the work with 1 thread); rows say flush_denormal",
+    )
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)  # internal: thread count
     a = p.parse_args()
     if a.buffer < 10_000:
@@ -98,7 +112,7 @@ def run_parent(a):
         argv = [sys.executable, os.path.abspath(__file__), "--worker", str(t)]
         argv += ["--seconds", str(a.seconds), "--algos", *a.algos, "--impls", *a.impls]
         argv += ["--buffer", str(a.buffer), "--warmup", str(a.warmup), "--chunk", str(a.chunk)]
-        argv += ["--seed", str(a.seed)]
+        argv += ["--seed", str(a.seed)] + (["--flush-denormal"] if a.flush_denormal else [])
         # The child's stdout lines go straight through (flushed per line).
         rc = subprocess.run(argv, env=env).returncode
         if rc != 0:
@@ -131,6 +145,8 @@ def run_worker(a):
 
     torch.set_num_threads(t)
     torch.set_num_interop_threads(t)
+    if a.flush_denormal and not torch.set_flush_denormal(True):
+        sys.exit("sb3_peer: --flush-denormal: this CPU has no flush-to-zero mode")
 
     import gymnasium as gym
     import numpy as np
@@ -163,6 +179,7 @@ def run_worker(a):
         "sb3": stable_baselines3.__version__,
         "python": "%d.%d.%d" % sys.version_info[:3],
         "buffer": a.buffer,
+        "flush_denormal": a.flush_denormal,
     }
 
     def measure(step_chunk, extra):
