@@ -25,6 +25,12 @@
 //! The bias corrections are computed in f64 on the host as PyTorch does. Results agree with
 //! PyTorch to float rounding (the order of a few f32 multiplications differs, because tch's
 //! `addcmul_`/`addcdiv_` take no scale factor).
+//!
+//! The host step of the fused CPU update (`Adam::step_host`) also stores a moment below
+//! f32's smallest normal number as 0, which moves no parameter differently and spares Intel
+//! CPUs a microcode assist per such moment per step (`normal_or_zero`). The tensor step
+//! ([`Adam::step`], on CUDA and on the autograd path) is PyTorch's as it stands: on a GPU
+//! subnormals cost nothing, and the flush would be six more kernel launches per step.
 
 use tch::Tensor;
 
@@ -150,7 +156,7 @@ impl Adam {
 /// range, where `m + (1 − β₁)(0 − m)` rounds back to `m`: it stays subnormal for good (the
 /// second moment follows after ~7·10⁴ steps). Every Adam step then does arithmetic on it, and
 /// on Intel CPUs each such operation is a microcode assist of ~100 cycles: SAC at the paper's
-/// sizes ran at 0.8× its speed on a Sapphire Rapids core (`mapless bench learner`; ~12,700 of the
+/// sizes ran at 0.8× its speed on an Intel Xeon core (AVX-512) (`mapless bench learner`; ~12,700 of the
 /// critics' 142,000 first moments subnormal after 1,000 updates). Zeroing them moves nothing
 /// else: a subnormal m changes θ by at most lr·(1/(1 − β₁))·2⁻¹²⁶/ε ≈ lr·1.2·10⁻²⁹ (ε = 10⁻⁸),
 /// below half an ulp of any |θ| > 10⁻²¹; a subnormal v changes the denominator √v/√(1 − β₂ᵗ) + ε
