@@ -45,8 +45,8 @@ OMP/MKL/OpenBLAS thread variables also set to T) and relays its JSON lines.
 
 Subnormal floats: by default the peer runs as its users do, with the CPU's IEEE default.
 `--flush-denormal` calls torch.set_flush_denormal(True) first, which treats subnormal floats
-as 0 on the calling thread (so for all the work with 1 thread; torch's OpenMP workers keep the
-default). It matters on Intel CPUs, where each operation on a subnormal costs a microcode
+as 0 on the calling thread; torch's OpenMP workers start later and inherit the mode, which the
+worker checks with a probe product over all threads before it measures. It matters on Intel CPUs, where each operation on a subnormal costs a microcode
 assist, and Adam's first moment of a parameter with zero gradient (a dead ReLU unit) shrinks
 into the subnormal range and stays there. mapless stores such moments as 0 (learner/src/optim.rs),
 so this flag is the like-for-like setting for that; run-sb3-peer.sh passes it with PEER_FTZ=1.
@@ -88,8 +88,8 @@ def parse_args():
     p.add_argument(
         "--flush-denormal",
         action="store_true",
-        help="torch.set_flush_denormal(True) first (subnormal floats read and written as 0 on the"
-        " calling thread, i.e. all of the work with 1 thread); rows say flush_denormal",
+        help="torch.set_flush_denormal(True) first (subnormal floats read and written as 0 on every"
+        " thread torch uses, checked by a probe); rows say flush_denormal",
     )
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)  # internal: thread count
     a = p.parse_args()
@@ -145,8 +145,14 @@ def run_worker(a):
 
     torch.set_num_threads(t)
     torch.set_num_interop_threads(t)
-    if a.flush_denormal and not torch.set_flush_denormal(True):
-        sys.exit("sb3_peer: --flush-denormal: this CPU has no flush-to-zero mode")
+    if a.flush_denormal:
+        if not torch.set_flush_denormal(True):
+            sys.exit("sb3_peer: --flush-denormal: this CPU has no flush-to-zero mode")
+        # The mode is per thread; OpenMP's workers, started by this first parallel product,
+        # inherit it. A subnormal product anywhere in this 4M-element tensor means one did not.
+        kept = (torch.full((1 << 22,), 1e-30) * 1e-10).count_nonzero().item()
+        if kept:
+            sys.exit(f"sb3_peer: --flush-denormal: {kept} subnormal products kept; not every thread flushes")
 
     import gymnasium as gym
     import numpy as np

@@ -158,9 +158,11 @@ impl Adam {
 /// on Intel CPUs each such operation is a microcode assist of ~100 cycles: SAC at the paper's
 /// sizes ran at 0.8× its speed on an Intel Xeon core (AVX-512) (`mapless bench learner`; ~12,700 of the
 /// critics' 142,000 first moments subnormal after 1,000 updates). Zeroing them moves nothing
-/// else: a subnormal m changes θ by at most lr·(1/(1 − β₁))·2⁻¹²⁶/ε ≈ lr·1.2·10⁻²⁹ (ε = 10⁻⁸),
-/// below half an ulp of any |θ| > 10⁻²¹; a subnormal v changes the denominator √v/√(1 − β₂ᵗ) + ε
-/// by less than 10⁻¹⁷, below half an ulp of ε (bounds for lr ≤ 1 and the default ε = 10⁻⁸). This is what flush-to-zero mode
+/// else: a subnormal m changes θ by at most lr·2⁻¹²⁶/((1 − β₁)·ε) (the bias correction
+/// 1/(1 − β₁ᵗ) is largest at t = 1), ≈ lr·1.2·10⁻²⁹ with the defaults β₁ = 0.9, ε = 10⁻⁸: below
+/// half an ulp of any |θ| > 10⁻²¹ for lr ≤ 1; a subnormal v changes the denominator
+/// √v/√(1 − β₂ᵗ) + ε by less than 10⁻¹⁷ (β₂ = 0.999), below half an ulp of ε = 10⁻⁸. A larger β₁
+/// or a smaller ε scales the first bound up (β₁ = 0.999: ×100). This is what flush-to-zero mode
 /// (TensorFlow's and XLA's default on CPU, PyTorch's `torch.set_flush_denormal(True)`) does to
 /// these two values, written out (Rust code may not run with the CPU's FTZ/DAZ flags set).
 /// The branch-free select vectorises.
@@ -243,47 +245,73 @@ mod tests {
         assert!(b.moments().1.allclose(a.moments().1, 1e-6, 1e-7, false));
     }
 
-    /// A dead ReLU unit: one gradient, then exact zeros. The moments shrink by β₁ (β₂) per step
-    /// into the subnormal range, where the tensor step leaves them for good; the host step
-    /// stores 0 there, and its parameters still follow the tensor step's.
+    /// [`Adam::step_host`]'s arithmetic without the flush, element by element in f32: what the
+    /// host step would store and do if it kept subnormal moments.
+    fn unflushed_host_step(p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32], t: i32, lr: f64) {
+        let AdamConfig { beta1, beta2, eps } = AdamConfig::default();
+        let step_size = (lr / (1.0 - beta1.powi(t))) as f32;
+        let sqrt_bc2 = (1.0 - beta2.powi(t)).sqrt() as f32;
+        let (w1, w2, eps) = ((1.0 - beta1) as f32, (1.0 - beta2) as f32, eps as f32);
+        for i in 0..p.len() {
+            m[i] += w1 * (g[i] - m[i]);
+            v[i] += w2 * (g[i] * g[i] - v[i]);
+            p[i] -= step_size * m[i] / (v[i].sqrt() / sqrt_bc2 + eps);
+        }
+    }
+
+    /// Dead ReLU units: one gradient, then exact zeros. The moments shrink by β₁ (β₂) per step
+    /// into the subnormal range, where the tensor step and an unflushed replay leave them for
+    /// good; the host step stores 0 there, and its parameters stay bit-equal to the replay's
+    /// (and within rounding of the tensor step's). 38 elements: each lane's half (19) runs the
+    /// vectorised body and a scalar tail.
     #[test]
     fn host_step_stores_no_subnormal_moment_and_moves_parameters_as_the_tensor_step() {
-        let subnormal = |t: &Tensor| Vec::<f32>::try_from(t).unwrap().iter().filter(|v| v.is_subnormal()).count();
-        let p = Tensor::from_slice(&[0.25f32, -0.5]);
-        let mut host = vec![0.25f32, -0.5];
-        let mut a = Adam::new(2, tch::Device::Cpu, 1e-3, AdamConfig::default());
-        let mut b = Adam::new(2, tch::Device::Cpu, 1e-3, AdamConfig::default());
+        const N: usize = 38;
+        let subnormal = |x: &[f32]| x.iter().filter(|v| v.is_subnormal()).count();
+        let moments = |adam: &Adam| {
+            let (m, v) = adam.moments();
+            (Vec::<f32>::try_from(m).unwrap(), Vec::<f32>::try_from(v).unwrap())
+        };
+        let p0: Vec<f32> = (0..N).map(|i| (i as f32 - 17.5) * 0.03).collect();
+        let first: Vec<f32> = (0..N).map(|i| [1e-3f32, -2.0, 0.37, -4e-5][i % 4] * (1.0 + i as f32 / 8.0)).collect();
+        let zero = [0.0f32; N];
+        let lr = 1e-3;
+        let p = Tensor::from_slice(&p0);
+        let mut host = p0.clone();
+        let (mut replay, mut rm, mut rv) = (p0.clone(), vec![0.0f32; N], vec![0.0f32; N]);
+        let mut a = Adam::new(N as i64, tch::Device::Cpu, lr, AdamConfig::default());
+        let mut b = Adam::new(N as i64, tch::Device::Cpu, lr, AdamConfig::default());
         let one = crate::lanes::Lanes::ONE;
-        let first = [1e-3f32, -2.0];
         a.step(&p, &Tensor::from_slice(&first));
         b.step_host(&mut host, &first, &one);
-        let zero = Tensor::zeros([2], (tch::Kind::Float, tch::Device::Cpu));
+        unflushed_host_step(&mut replay, &mut rm, &mut rv, &first, 1, lr);
+        let zeros = Tensor::zeros([N as i64], (tch::Kind::Float, tch::Device::Cpu));
         let mut tensor_went_subnormal = false;
-        for _ in 0..1_000 {
-            a.step(&p, &zero);
-            b.step_host(&mut host, &[0.0; 2], &one);
-            assert_eq!(subnormal(b.moments().0) + subnormal(b.moments().1), 0);
-            tensor_went_subnormal |= subnormal(a.moments().0) > 0;
+        for t in 2..=1_001 {
+            a.step(&p, &zeros);
+            b.step_host(&mut host, &zero, &one);
+            unflushed_host_step(&mut replay, &mut rm, &mut rv, &zero, t, lr);
+            let (m, v) = moments(&b);
+            assert_eq!(subnormal(&m) + subnormal(&v), 0, "step {t}");
+            tensor_went_subnormal |= subnormal(&moments(&a).0) > 0;
         }
         assert!(tensor_went_subnormal, "the tensor step's first moments never went subnormal: the test misses its case");
-        assert_eq!(Vec::<f32>::try_from(b.moments().0).unwrap(), vec![0.0; 2]);
+        assert_eq!(subnormal(&rm), N, "the unflushed replay's first moments all stay subnormal");
+        assert_eq!(moments(&b).0, vec![0.0; N]);
+        assert_eq!(host, replay, "the flush moved a parameter");
         let want = Vec::<f32>::try_from(&p).unwrap();
         for (x, y) in host.iter().zip(&want) {
             assert!((x - y).abs() <= 1e-6 * (1.0 + y.abs()), "{host:?} vs {want:?}");
         }
-        // The second moments (β₂ = 0.999) reach the subnormal range ~66,000 and ~82,000 steps
-        // later (an f32 replay of the first one's recursion without the flush shows it).
-        let (w2, mut v_ref, mut v_ref_went_subnormal) = (1.0 - 0.999f32, Vec::<f32>::try_from(b.moments().1).unwrap()[0], false);
-        let before = host.clone();
-        for _ in 0..120_000 {
-            v_ref += w2 * (0.0 - v_ref);
-            v_ref_went_subnormal |= v_ref.is_subnormal();
-            b.step_host(&mut host, &[0.0; 2], &one);
+        // The second moments (β₂ = 0.999) reach the subnormal range 60,000–90,000 steps later.
+        for t in 1_002..=121_001 {
+            b.step_host(&mut host, &zero, &one);
+            unflushed_host_step(&mut replay, &mut rm, &mut rv, &zero, t, lr);
         }
-        assert!(v_ref_went_subnormal, "{v_ref}");
-        assert_eq!(subnormal(b.moments().1), 0);
-        assert_eq!(Vec::<f32>::try_from(b.moments().1).unwrap(), vec![0.0; 2]);
-        assert_eq!(host, before, "zero moments move nothing");
+        assert!(subnormal(&rv) > 0, "the replay's second moments never went subnormal: {rv:?}");
+        let (m, v) = moments(&b);
+        assert_eq!((m, v), (vec![0.0; N], vec![0.0; N]));
+        assert_eq!(host, replay, "the flush moved a parameter");
     }
 
     #[test]
