@@ -46,10 +46,11 @@ OMP/MKL/OpenBLAS thread variables also set to T) and relays its JSON lines.
 Subnormal floats: by default the peer runs as its users do, with the CPU's IEEE default.
 `--flush-denormal` calls torch.set_flush_denormal(True) first, which treats subnormal floats
 as 0 on the calling thread; torch's OpenMP workers start later and inherit the mode, which the
-worker checks with a probe product over all threads before it measures. It matters on Intel CPUs, where each operation on a subnormal costs a microcode
-assist, and Adam's first moment of a parameter with zero gradient (a dead ReLU unit) shrinks
-into the subnormal range and stays there. mapless stores such moments as 0 (learner/src/optim.rs),
-so this flag is the like-for-like setting for that; run-sb3-peer.sh passes it with PEER_FTZ=1.
+worker checks with a probe product over all threads before it measures. It matters on Intel
+CPUs, where each operation on a subnormal costs a microcode assist, and Adam's first moment of
+a parameter with zero gradient (a dead ReLU unit) shrinks into the subnormal range and stays
+there. mapless stores such moments as 0 (learner/src/optim.rs), so this flag is the
+like-for-like setting for that; run-sb3-peer.sh passes it with PEER_FTZ=1.
 
 Output: one JSON object per line on stdout, e.g.
   {"bench": "learner", "impl": "sb3", "algo": "sac", "threads": 1, "updates_per_s": 321.0, ...}

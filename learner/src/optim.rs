@@ -262,8 +262,8 @@ mod tests {
     /// Dead ReLU units: one gradient, then exact zeros. The moments shrink by β₁ (β₂) per step
     /// into the subnormal range, where the tensor step and an unflushed replay leave them for
     /// good; the host step stores 0 there, and its parameters stay bit-equal to the replay's
-    /// (and within rounding of the tensor step's). 38 elements: each lane's half (19) runs the
-    /// vectorised body and a scalar tail.
+    /// (and within rounding of the tensor step's). 38 elements: `step_host` splits the buffer in
+    /// halves even on one lane, and each half (19) runs the vectorised body and a scalar tail.
     #[test]
     fn host_step_stores_no_subnormal_moment_and_moves_parameters_as_the_tensor_step() {
         const N: usize = 38;
