@@ -9,6 +9,7 @@
 //!   mapless train --preset env1-sac        a local actor–learner cluster, supervised
 //!   mapless eval --run runs/NAME --map env3  the trained policy on any map, with pictures
 //!   mapless learner --config FILE          the learner process (started by `train`)
+//!   mapless analyze eqs                    which EQS reading the paper's tables support
 //! ```
 
 use std::path::PathBuf;
@@ -64,6 +65,31 @@ enum Cmd {
     Bench {
         #[command(subcommand)]
         cmd: BenchCmd,
+    },
+    /// Analyses of the paper's own numbers.
+    Analyze {
+        #[command(subcommand)]
+        cmd: AnalyzeCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum AnalyzeCmd {
+    /// Which reading of the paper's EQS formula fits every row of its Tables III–V: a Monte
+    /// Carlo of trajectories of each row's length (d = EQS/EES) under the car's kinematics,
+    /// scored under each candidate reading (docs/simulator.md, "The EQS reading").
+    Eqs {
+        /// Simulated trajectories per paper row.
+        #[arg(long, default_value_t = 2000)]
+        trajectories: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Also write the table as Markdown to this file.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the whole analysis as one JSON object instead of the table.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -253,6 +279,7 @@ fn run(cli: Cli) -> Result<()> {
             mapless_replay::logging::identify(&[("run", &run), ("role", "learner")]);
             learner_cmd::run(&config)
         }
+        Cmd::Analyze { cmd: AnalyzeCmd::Eqs { trajectories, seed, out, json } } => analyze_eqs(trajectories, seed, out.as_deref(), json),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
         Cmd::Bench { cmd: BenchCmd::Learner { seconds, device, threads, algos, unfused, autograd, json } } => bench_learner(seconds, &device, &threads, &algos, unfused, autograd, json),
@@ -279,6 +306,35 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
         }
         println!("mean {:>6.0} {:>9.1} {:>5.1} {:>6.2} {:>9.1} {:>8.1}  ({} collisions)", s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.mean_shaded_time_s, s.collisions);
         println!("pictures and eval.json in {}", out.display());
+    }
+    Ok(())
+}
+
+fn analyze_eqs(trajectories: usize, seed: u64, out: Option<&std::path::Path>, json: bool) -> Result<()> {
+    if trajectories == 0 {
+        bail!("--trajectories must be >= 1");
+    }
+    let readings = mapless_sim::eqs_analysis::Reading::candidates();
+    let t0 = std::time::Instant::now();
+    let a = mapless_sim::eqs_analysis::analyze(&readings, trajectories, seed, |done, all| {
+        eprintln!("analyze eqs: {done}/{all} paper rows simulated ({:.1} s)", t0.elapsed().as_secs_f64());
+    })?;
+    let md = a.markdown();
+    if let Some(p) = out {
+        std::fs::write(p, &md).with_context(|| format!("writing {}", p.display()))?;
+    }
+    if json {
+        println!("{}", serde_json::to_string(&a)?);
+        return Ok(());
+    }
+    println!("{md}");
+    let default = mapless_sim::ExplorationConfig::default();
+    match a.supported() {
+        Some(best) => println!("Supported by every row: {} (worst row {:.1} % from a tail).", best.label, best.worst_tail),
+        None => println!("No candidate reading fits every row; best: {}.", a.readings[0].label),
+    }
+    if let Some(d) = a.readings.iter().find(|r| r.reading.exploration() == default) {
+        println!("The simulator's default ({}): {}/{} rows fit, worst row {:.1} % from a tail.", d.label, d.rows_fitting, d.rows.len(), d.worst_tail);
     }
     Ok(())
 }

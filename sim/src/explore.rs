@@ -1,19 +1,24 @@
 //! Exploration Quality Score and Exploration Efficiency Score (paper §IV-B).
 //!
 //! The paper writes EQS = Σₙ (n Σₖ k) over rings n of radius 10n around the start, k counting
-//! the 2 m² segments the trajectory covers. Our reading (SPEC §1), with both sizes configurable:
+//! the 2 m² segments the trajectory covers. Our reading (SPEC §1; settled against the paper's
+//! Tables III–V by `mapless analyze eqs`, see docs/simulator.md), every size configurable:
 //!
 //! ```text
-//!   cells: squares of side √2 m (area 2 m²), a fixed grid anchored at the map's min corner
-//!   ring of a cell: n = ⌊ |centre − start| / 10 m ⌋ + 1
+//!   cells: squares of side 2 m (the paper's "2 m² segments"), a fixed grid anchored at the
+//!          map's min corner
+//!   ring of a cell: n = ⌊ |centre − start| / w ⌋ + 1,  w = 2.5 m
 //!   k_n = number of distinct cells of ring n whose square the vehicle's centre enters
 //!   EQS = Σₙ n · k_n            EES = EQS / path length (m)   (0 for a path of length 0)
 //! ```
 //!
+//! The other readings stay selectable: any ring width, and the printed inner sum taken
+//! literally (`inner_sum: triangular`, EQS = Σₙ n · k_n (k_n + 1) / 2).
+//!
 //! Cells are recorded at every pose the simulator reports (once per step, and at the start),
 //! so the start cell always counts. Time in shaded regions is also accumulated here.
 
-use crate::config::ExplorationConfig;
+use crate::config::{ExplorationConfig, InnerSum};
 use crate::scene::Aabb;
 
 /// Per-episode exploration bookkeeping. O(1) per visit; memory one bit per cell.
@@ -22,6 +27,9 @@ pub struct ExplorationTracker {
     origin: (f64, f64),
     side_m: f64,
     ring_m: f64,
+    inner: InnerSum,
+    /// k_n per ring (index n − 1), for the triangular inner sum.
+    ring_cells: Vec<u32>,
     nx: usize,
     ny: usize,
     visited: Vec<u64>,
@@ -42,6 +50,8 @@ impl ExplorationTracker {
             origin: (bounds.min_x, bounds.min_y),
             side_m: side,
             ring_m: cfg.ring_width_m,
+            inner: cfg.inner_sum,
+            ring_cells: Vec::new(),
             nx,
             ny,
             visited: vec![0; (nx * ny).div_ceil(64)],
@@ -57,6 +67,7 @@ impl ExplorationTracker {
     /// Starts a new episode at (x, y).
     pub fn reset(&mut self, x: f64, y: f64) {
         self.visited.fill(0);
+        self.ring_cells.clear();
         self.start = (x, y);
         self.last = (x, y);
         self.eqs = 0;
@@ -88,7 +99,18 @@ impl ExplorationTracker {
             let cx = self.origin.0 + (i as f64 + 0.5) * self.side_m;
             let cy = self.origin.1 + (j as f64 + 0.5) * self.side_m;
             let ring = ((cx - self.start.0).hypot(cy - self.start.1) / self.ring_m).floor() as u64 + 1;
-            self.eqs += ring;
+            self.eqs += match self.inner {
+                InnerSum::Linear => ring,
+                InnerSum::Triangular => {
+                    // n·T(k) − n·T(k − 1) = n·k for the k-th cell of ring n.
+                    let idx = (ring - 1) as usize;
+                    if self.ring_cells.len() <= idx {
+                        self.ring_cells.resize(idx + 1, 0);
+                    }
+                    self.ring_cells[idx] += 1;
+                    ring * u64::from(self.ring_cells[idx])
+                }
+            };
             self.cells += 1;
         }
     }
@@ -123,7 +145,40 @@ mod tests {
 
     fn tracker(cell_area: f64) -> ExplorationTracker {
         let b = Aabb { min_x: 0.0, min_y: 0.0, max_x: 40.0, max_y: 40.0 };
-        ExplorationTracker::new(b, &ExplorationConfig { cell_area_m2: cell_area, ring_width_m: 10.0 })
+        ExplorationTracker::new(b, &ExplorationConfig { cell_area_m2: cell_area, ring_width_m: 10.0, inner_sum: InnerSum::Linear })
+    }
+
+    #[test]
+    fn triangular_inner_sum_weighs_the_kth_cell_of_ring_n_by_n_k() {
+        // The straight line of the first test: 5 cells in ring 1, 5 in ring 2, 3 in ring 3.
+        // Triangular: 1·T(5) + 2·T(5) + 3·T(3) = 15 + 30 + 18 = 63.
+        let b = Aabb { min_x: 0.0, min_y: 0.0, max_x: 40.0, max_y: 40.0 };
+        let mut t = ExplorationTracker::new(b, &ExplorationConfig { cell_area_m2: 4.0, ring_width_m: 10.0, inner_sum: InnerSum::Triangular });
+        for _ in 0..2 {
+            // Twice: a reset must forget the ring counts.
+            t.reset(1.0, 1.0);
+            for k in 1..=240 {
+                t.visit(1.0 + k as f64 * 0.1, 1.0, 0.0);
+            }
+            assert_eq!(t.cells_visited(), 13);
+            assert_eq!(t.eqs(), 63);
+        }
+    }
+
+    #[test]
+    fn default_reading_is_two_metre_cells_and_rings_of_two_and_a_half() {
+        // The straight line of the first test under the default reading: cell i (centre 2i + 1,
+        // distance 2i from the start) is in ring ⌊2i / 2.5⌋ + 1, i = 0..=12 →
+        // 1, 1, 2, 3, 4, 5, 5, 6, 7, 8, 9, 9, 10: EQS = 70 over 24 m, EES 2.92.
+        let b = Aabb { min_x: 0.0, min_y: 0.0, max_x: 40.0, max_y: 40.0 };
+        let mut t = ExplorationTracker::new(b, &ExplorationConfig::default());
+        t.reset(1.0, 1.0);
+        for k in 1..=240 {
+            t.visit(1.0 + k as f64 * 0.1, 1.0, 0.0);
+        }
+        assert!((t.cell_side_m() - 2.0).abs() < 1e-12);
+        assert_eq!(t.cells_visited(), 13);
+        assert_eq!(t.eqs(), 70);
     }
 
     #[test]

@@ -39,18 +39,18 @@ fn episode_picture_marks_visited_cells_and_writes_a_png() {
     }
     let map = &world.map;
     let mut c = Canvas::map(map, default_px_per_m(map), "ENV1").unwrap();
-    // Cells are anchored at the map corner (−12.5, −12.5), side √2: the path y = 0 runs in the
-    // row y ∈ [−1.19, 0.23], so (−5, −0.8) is inside a visited cell, off the drawn line.
+    // Cells are anchored at the map corner (−12.5, −12.5), side 2 m: the path y = 0 runs in the
+    // row y ∈ [−0.5, 1.5], so (−5, 1.2) is inside a visited cell, off the drawn line.
     let before = {
-        let (px, py) = c.world_to_px(-5.0, -0.8);
+        let (px, py) = c.world_to_px(-5.0, 1.2);
         c.pixel(px as u32, py as u32).unwrap()
     };
     let far_before = {
         let (px, py) = c.world_to_px(-5.0, 8.0);
         c.pixel(px as u32, py as u32).unwrap()
     };
-    c.episode(map, env.trajectory().unwrap(), env.tracker(), 10.0, false);
-    let (px, py) = c.world_to_px(-5.0, -0.8);
+    c.episode(map, env.trajectory().unwrap(), env.tracker(), world.cfg.exploration.ring_width_m, false);
+    let (px, py) = c.world_to_px(-5.0, 1.2);
     let after = c.pixel(px as u32, py as u32).unwrap();
     assert!(after[2] > after[0] && after != before, "visited cell is tinted blue: {before:?} -> {after:?}");
     let (px, py) = c.world_to_px(-5.0, 8.0);
