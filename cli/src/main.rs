@@ -106,6 +106,20 @@ enum MapsCmd {
         #[arg(long)]
         px_per_m: Option<f32>,
     },
+    /// What a map lets any policy earn under eq. (1): the largest minimum range over every
+    /// pose the car can stand in (a lattice of positions × headings), the per-step reward
+    /// bound it implies, and the bound for a car that stands still.
+    Stats {
+        map: String,
+        /// Lattice spacing (m).
+        #[arg(long, default_value_t = 0.1)]
+        grid: f64,
+        /// Headings per position.
+        #[arg(long, default_value_t = 72)]
+        headings: usize,
+        #[arg(long)]
+        json: bool,
+    },
     /// Write a map as a ROS map_server map (NAME.yaml + NAME.pgm) for ROS tools and peers.
     Rasterize {
         map: String,
@@ -271,6 +285,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Maps { cmd: MapsCmd::List } => maps_list(),
         Cmd::Maps { cmd: MapsCmd::Show { map, out, px_per_m } } => maps_show(&map, &out, px_per_m),
+        Cmd::Maps { cmd: MapsCmd::Stats { map, grid, headings, json } } => maps_stats(&map, grid, headings, json),
         Cmd::Maps { cmd: MapsCmd::Rasterize { map, resolution, out } } => maps_rasterize(&map, resolution, &out),
         Cmd::Rollout(a) => rollout(a),
         Cmd::Train(a) => train::train(&a, log_json),
@@ -336,6 +351,23 @@ fn analyze_eqs(trajectories: usize, seed: u64, out: Option<&std::path::Path>, js
     if let Some(d) = a.readings.iter().find(|r| r.reading.exploration() == default) {
         println!("The simulator's default ({}): {}/{} rows fit, worst row {:.1} % from a tail.", d.label, d.rows_fitting, d.rows.len(), d.worst_tail);
     }
+    Ok(())
+}
+
+fn maps_stats(map: &str, grid: f64, headings: usize, json: bool) -> Result<()> {
+    if !(grid > 0.0) || headings == 0 {
+        bail!("--grid must be > 0 and --headings >= 1");
+    }
+    let world = World::new(Map::resolve(map)?, EnvConfig::default())?;
+    let b = mapless_sim::bounds::reward_bounds(&world, grid, headings);
+    if json {
+        println!("{}", serde_json::json!({ "map": world.map.name, "grid_m": grid, "headings": headings, "bounds": b }));
+        return Ok(());
+    }
+    let steps = world.cfg.episode.max_steps;
+    println!("{}: {} collision-free poses scanned ({grid} m × {headings} headings)", world.map.name, b.poses);
+    println!("  largest minimum range {:.2} m at ({:.1}, {:.1}, {:.0}°); mean {:.2} m", b.max_min_range_m, b.at[0], b.at[1], b.at[2].to_degrees(), b.mean_min_range_m);
+    println!("  eq. (1) per step at most {:.3} ({:.0} over {steps} steps); standing still at most {:.3} ({:.0})", b.per_step, b.per_step * f64::from(steps), b.standing_still_per_step, b.standing_still_per_step * f64::from(steps));
     Ok(())
 }
 

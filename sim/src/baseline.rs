@@ -25,6 +25,19 @@ pub fn wander(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64) -> [f
     [(2.0 * speed - 1.0) as f32, turn as f32]
 }
 
+/// The same steering as [`wander`] at a set speed, `speed_fraction` of v_max (slowing only when
+/// the way ahead closes to 1.5 m): a scripted driver at the paper's speeds, whose per-step reward
+/// shows what a world pays for driving (`sim/tests/paper_worlds.rs`).
+pub fn cruise(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64, speed_fraction: f64) -> [f32; 2] {
+    let [a_speed, turn] = wander(ranges_m, beam_angles_rad, max_range_m);
+    let front = ranges_m.iter().zip(beam_angles_rad).filter(|(_, a)| a.abs() < 0.3).map(|(r, _)| f64::from(*r)).fold(max_range_m, f64::min);
+    let wanted = 2.0 * speed_fraction.clamp(0.0, 1.0) - 1.0;
+    let speed = if front < 1.5 { f64::from(a_speed).min(wanted) } else { wanted };
+    // Half the steering while the way ahead is open: less weaving, less ω² penalty.
+    let turn = if front > 3.0 { 0.5 * turn } else { turn };
+    [speed as f32, turn]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

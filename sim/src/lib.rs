@@ -13,6 +13,7 @@
 //! is a config field documented with its source (`config`).
 
 pub mod baseline;
+pub mod bounds;
 pub mod bench;
 pub mod config;
 pub mod env;

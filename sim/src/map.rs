@@ -545,7 +545,7 @@ mod tests {
     fn builtin_maps_load_and_match_the_paper() {
         let env1 = Map::builtin("env1").unwrap();
         assert_eq!((env1.bounds.width(), env1.bounds.height()), (25.0, 25.0));
-        assert!(env1.obstacles.is_empty());
+        assert_eq!(env1.obstacles.len(), 9); // a central block and eight stubs (sim/tests/paper_worlds.rs checks what they imply)
         let env2 = Map::builtin("env2").unwrap();
         assert_eq!((env2.bounds.width(), env2.bounds.height()), (40.0, 40.0));
         assert!((15..=25).contains(&env2.obstacles.len()), "{}", env2.obstacles.len());

@@ -33,16 +33,16 @@ fn episode_picture_marks_visited_cells_and_writes_a_png() {
     let mut env = Env::new(Arc::clone(&world), 0);
     env.record_trajectory(true);
     let mut obs = vec![0.0; world.obs_dim()];
-    env.reset_to(Pose { x_m: -10.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+    env.reset_to(Pose { x_m: -10.0, y_m: -10.0, heading_rad: 0.0 }, &mut obs);
     for _ in 0..200 {
-        env.step([1.0, 0.0], &mut obs).unwrap(); // 10 m east
+        env.step([1.0, 0.0], &mut obs).unwrap(); // 10 m east, along the south corridor
     }
     let map = &world.map;
     let mut c = Canvas::map(map, default_px_per_m(map), "ENV1").unwrap();
-    // Cells are anchored at the map corner (−12.5, −12.5), side 2 m: the path y = 0 runs in the
-    // row y ∈ [−0.5, 1.5], so (−5, 1.2) is inside a visited cell, off the drawn line.
+    // Cells are anchored at the map corner (−12.5, −12.5), side 2 m: the path y = −10 runs in the
+    // row y ∈ [−10.5, −8.5], so (−5, −8.8) is inside a visited cell, off the drawn line.
     let before = {
-        let (px, py) = c.world_to_px(-5.0, 1.2);
+        let (px, py) = c.world_to_px(-5.0, -8.8);
         c.pixel(px as u32, py as u32).unwrap()
     };
     let far_before = {
@@ -50,7 +50,7 @@ fn episode_picture_marks_visited_cells_and_writes_a_png() {
         c.pixel(px as u32, py as u32).unwrap()
     };
     c.episode(map, env.trajectory().unwrap(), env.tracker(), world.cfg.exploration.ring_width_m, false);
-    let (px, py) = c.world_to_px(-5.0, 1.2);
+    let (px, py) = c.world_to_px(-5.0, -8.8);
     let after = c.pixel(px as u32, py as u32).unwrap();
     assert!(after[2] > after[0] && after != before, "visited cell is tinted blue: {before:?} -> {after:?}");
     let (px, py) = c.world_to_px(-5.0, 8.0);

@@ -5,7 +5,17 @@ use std::sync::Arc;
 use mapless_sim::{Env, EnvConfig, Map, Pose, RewardConfig, VecEnv, VecStep, World};
 
 fn world(map: &str, cfg: EnvConfig) -> Arc<World> {
+    if map == "box" {
+        return World::new(empty_box(), cfg).unwrap();
+    }
     World::new(Map::builtin(map).unwrap(), cfg).unwrap()
+}
+
+/// An empty 25 m walled box (what env1 was before it got its interior walls): geometry with
+/// hand-worked distances.
+fn empty_box() -> Map {
+    let text = "format: mapless-vector-map/v1\nname: box\nbounds: { min: [-12.5, -12.5], max: [12.5, 12.5] }\nboundary_walls: true\nobstacles: []\n";
+    Map::from_vector_yaml(text, std::path::Path::new("box.yaml")).unwrap()
 }
 
 fn noiseless() -> EnvConfig {
@@ -38,12 +48,12 @@ fn search_and_rescue_reward_is_equation_2() {
 
 #[test]
 fn observation_holds_both_scans_last_action_and_reward() {
-    let w = world("env1", noiseless());
+    let w = world("box", noiseless());
     let mut env = Env::new(Arc::clone(&w), 1);
     let d = w.obs_dim();
     assert_eq!(d, 17);
     let mut obs = vec![0.0; d];
-    // Centre of env1 facing +x: the middle beam (0 rad) sees the wall at 12.5 m → beyond 12 m → max.
+    // Centre of the box facing +x: the middle beam (0 rad) sees the wall at 12.5 m → beyond 12 m → max.
     env.reset_to(Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
     assert_eq!(&obs[0..7], &obs[7..14], "at reset both scans are the first scan");
     assert_eq!(&obs[14..17], &[0.0, 0.0, 0.0]);
@@ -63,7 +73,7 @@ fn observation_holds_both_scans_last_action_and_reward() {
 
 #[test]
 fn ranges_to_a_known_wall_match_the_geometry() {
-    let w = world("env1", noiseless());
+    let w = world("box", noiseless());
     let mut env = Env::new(Arc::clone(&w), 1);
     let mut obs = vec![0.0; w.obs_dim()];
     // 4.5 m from the east wall (x = 12.5), facing it.
@@ -82,7 +92,7 @@ fn ranges_to_a_known_wall_match_the_geometry() {
 
 #[test]
 fn driving_into_a_wall_is_terminal_not_truncated() {
-    let w = world("env1", noiseless());
+    let w = world("box", noiseless());
     let mut env = Env::new(Arc::clone(&w), 3);
     let mut obs = vec![0.0; w.obs_dim()];
     // Nose 0.5 m from the east wall: centre at 12.5 − 0.275 − 0.5.
@@ -104,7 +114,7 @@ fn driving_into_a_wall_is_terminal_not_truncated() {
 fn reaching_max_steps_is_truncated_not_terminal() {
     let mut cfg = noiseless();
     cfg.episode.max_steps = 25;
-    let w = world("env1", cfg);
+    let w = world("box", cfg);
     let mut env = Env::new(Arc::clone(&w), 4);
     let mut obs = vec![0.0; w.obs_dim()];
     env.reset_to(Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
@@ -120,7 +130,7 @@ fn reaching_max_steps_is_truncated_not_terminal() {
 fn collision_on_the_last_step_is_terminal_only() {
     let mut cfg = noiseless();
     cfg.episode.max_steps = 10;
-    let w = world("env1", cfg);
+    let w = world("box", cfg);
     let mut env = Env::new(Arc::clone(&w), 5);
     let mut obs = vec![0.0; w.obs_dim()];
     env.reset_to(Pose { x_m: 11.725, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
@@ -187,7 +197,7 @@ fn same_seed_same_episode_different_seed_different_episode() {
 fn vec_env_resets_finished_vehicles_and_reports_their_episode() {
     let mut cfg = EnvConfig::default();
     cfg.episode.max_steps = 5;
-    let w = world("env1", cfg);
+    let w = world("box", cfg);
     let mut v = VecEnv::new(Arc::clone(&w), 3, 9).unwrap();
     let mut out = VecStep::default();
     let still = vec![-1.0f32, 0.0, -1.0, 0.0, -1.0, 0.0];
@@ -212,7 +222,7 @@ fn vec_env_resets_finished_vehicles_and_reports_their_episode() {
 
 #[test]
 fn vec_env_rejects_bad_actions_without_moving_anyone() {
-    let w = world("env1", EnvConfig::default());
+    let w = world("box", EnvConfig::default());
     let mut v = VecEnv::new(w, 2, 1).unwrap();
     let poses: Vec<Pose> = v.envs().iter().map(|e| e.pose()).collect();
     let mut out = VecStep::default();
