@@ -24,6 +24,7 @@ use rand::{Rng, SeedableRng};
 
 mod eval;
 mod learner_cmd;
+mod protocol;
 mod signals;
 mod train;
 

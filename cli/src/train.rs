@@ -40,6 +40,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::eval;
 use crate::learner_cmd::LearnerServiceConfig;
+use crate::protocol;
 
 /// Built-in presets: name → YAML (the files under `presets/`).
 pub const PRESETS: &[(&str, &str)] = &[
@@ -68,13 +69,40 @@ pub struct StopCriteria {
     /// Stop after this many minutes of wall time (of the whole run: a resumed run counts its
     /// earlier sessions).
     pub minutes: Option<f64>,
+    /// With the moving averages: whenever they hold, the newest policy is evaluated
+    /// (deterministic, `eval.map`, `eval_episodes` episodes, the evaluation seed), and the run
+    /// stops only when that evaluation's mean EQS reaches this ... [paper Table III: the
+    /// algorithm's post-training EQS]
+    pub eval_eqs: Option<f64>,
+    /// ... and its mean EES this ... [paper Table III]
+    pub eval_ees: Option<f64>,
+    /// ... with at most this many collisions [paper §V-A1: "each algorithm achieved 1000
+    /// episode steps without collision"].
+    pub eval_max_collisions: u32,
+    /// Episodes of that evaluation [ours: 10, as the final evaluation].
+    pub eval_episodes: u32,
+    /// The convergence episode reported by every run (not a stop): the first episode from which
+    /// the order-`window` averages of return and steps stay within this fraction of their
+    /// final values [ours; the paper states no rule, see `protocol::convergence_episode`].
+    pub convergence_tolerance: f64,
 }
 
 impl Default for StopCriteria {
     fn default() -> Self {
-        StopCriteria { episodes: None, window: 50, average_return: None, average_steps: None, minutes: None }
+        StopCriteria { episodes: None, window: 50, average_return: None, average_steps: None, minutes: None, eval_eqs: None, eval_ees: None, eval_max_collisions: 0, eval_episodes: 10, convergence_tolerance: 0.1 }
     }
 }
+
+impl StopCriteria {
+    /// The evaluation that must back the moving averages, if any.
+    pub fn eval_goal(&self) -> Option<protocol::EvalGoal> {
+        (self.eval_eqs.is_some() || self.eval_ees.is_some()).then_some(protocol::EvalGoal { eqs: self.eval_eqs, ees: self.eval_ees, max_collisions: self.eval_max_collisions })
+    }
+}
+
+/// Shortest time between two evaluations of the stop criterion (they run while training goes
+/// on; 10 episodes of 1000 steps take about a second).
+const GATE_EVAL_COOLDOWN: Duration = Duration::from_secs(20);
 
 /// Actor processes.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -259,6 +287,12 @@ impl TrainConfig {
         }
         if self.stop.window == 0 {
             bail!("stop.window must be >= 1");
+        }
+        if self.stop.eval_goal().is_some() && (self.stop.average_return.is_none() && self.stop.average_steps.is_none()) {
+            bail!("stop.eval_eqs / stop.eval_ees back the moving averages: set stop.average_return or stop.average_steps too");
+        }
+        if self.stop.eval_episodes == 0 || !(self.stop.convergence_tolerance > 0.0) {
+            bail!("stop.eval_episodes must be >= 1 and stop.convergence_tolerance > 0");
         }
         mapless_sim::Map::resolve(&self.map).with_context(|| format!("map `{}`", self.map))?;
         Ok(self)
@@ -688,6 +722,11 @@ struct Summary {
     average_steps: f64,
     window: usize,
     criteria_met_at: Option<Milestone>,
+    /// The evaluation that met `stop.eval_*` (its policy is the run's `policy.safetensors`).
+    criteria_evaluation: Option<eval::EvalSummary>,
+    /// First episode from which the moving averages stayed within `stop.convergence_tolerance`
+    /// of their final values (`protocol::convergence_episode`).
+    convergence_episode: Option<u64>,
     actor_restarts: u32,
     /// Throughput after start-up (from 20 s, or a third of a time-limited run, to the stop).
     steady: Option<Rates>,
@@ -895,6 +934,11 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let mut progress_eval: Option<ProgressEval> = None;
     let mut last_progress_eval = Instant::now();
     let mut steady_start: Option<(Instant, u64, u64)> = None;
+    // The evaluation of the stop criterion running now (on a copy of the policy it judges).
+    let gate_policy = run.join("policy-criteria.safetensors");
+    let mut gate_eval: Option<std::thread::JoinHandle<Result<eval::EvalSummary>>> = None;
+    let mut last_gate_eval: Option<Instant> = None;
+    let mut criteria_evaluation: Option<eval::EvalSummary> = None;
 
     loop {
         // Lines from children (the learner's status, actors' final reports).
@@ -986,13 +1030,40 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             pictured = rows.len();
             last_picture = Instant::now();
         }
-        // Stop criteria.
+        // Stop criteria: the moving averages, backed (when the preset asks) by an evaluation of
+        // the newest policy that reaches the paper's exploration figures.
+        let goal = |name: &str, g: Option<f64>| g.map(|g| format!("{name} ≥ {g}"));
+        let averages = || [goal("return", cfg.stop.average_return), goal("steps", cfg.stop.average_steps)].into_iter().flatten().collect::<Vec<String>>().join(", ");
+        if let Some(h) = gate_eval.take_if(|h| h.is_finished()) {
+            last_gate_eval = Some(Instant::now());
+            match h.join() {
+                Ok(Ok(s)) => {
+                    let gate = cfg.stop.eval_goal().expect("a gate evaluation runs only with a goal");
+                    append_eval(&run, offset_s + started.elapsed().as_secs_f64(), "criteria", &s)?;
+                    if gate.met_by(&s) && milestone.is_none() {
+                        milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
+                        stopped_because = format!("order-{} moving averages reached the goal ({}) and an evaluation of policy v{} met {} ({})", cfg.stop.window, averages(), s.policy_version, gate.describe(), s.one_line());
+                        criteria_evaluation = Some(s);
+                        stop.store(true, Ordering::Relaxed);
+                    } else {
+                        tracing::info!(policy_version = s.policy_version, "averages met, evaluation short of {}: {}", gate.describe(), s.one_line());
+                    }
+                }
+                Ok(Err(e)) => tracing::warn!(error = %format!("{e:#}"), "evaluation of the stop criterion failed"),
+                Err(_) => tracing::warn!("evaluation of the stop criterion panicked"),
+            }
+        }
         if milestone.is_none() && rows.len() > first_episode_this_session && averages_met(&rows, &cfg.stop) {
-            milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
-            let goal = |name: &str, g: Option<f64>| g.map(|g| format!("{name} ≥ {g}"));
-            let goals: Vec<String> = [goal("return", cfg.stop.average_return), goal("steps", cfg.stop.average_steps)].into_iter().flatten().collect();
-            stopped_because = format!("order-{} moving averages reached the goal ({})", cfg.stop.window, goals.join(", "));
-            stop.store(true, Ordering::Relaxed);
+            if cfg.stop.eval_goal().is_none() {
+                milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
+                stopped_because = format!("order-{} moving averages reached the goal ({})", cfg.stop.window, averages());
+                stop.store(true, Ordering::Relaxed);
+            } else if gate_eval.is_none() && last_gate_eval.is_none_or(|t| t.elapsed() >= GATE_EVAL_COOLDOWN) && run.join("policy.safetensors").exists() {
+                // Judge a copy: the learner keeps replacing policy.safetensors.
+                fs::copy(run.join("policy.safetensors"), &gate_policy).with_context(|| format!("copying the policy to {}", gate_policy.display()))?;
+                let (policy, map, env, n, seed) = (gate_policy.clone(), eval_map.clone(), cfg.env.clone(), cfg.stop.eval_episodes, eval_seed);
+                gate_eval = Some(std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, None))?);
+            }
         }
         if let Some(k) = cfg.stop.episodes
             && rows.len() as u64 >= k
@@ -1080,6 +1151,19 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         p.finish(&run)?;
     }
 
+    if let Some(h) = gate_eval.take() {
+        let _ = h.join();
+    }
+    // A run stopped by its criteria keeps the policy that met them as its policy; the learner's
+    // last one (a few seconds of training later) stays beside it.
+    if criteria_evaluation.is_some() {
+        let (policy, last) = (run.join("policy.safetensors"), run.join("policy-last.safetensors"));
+        if policy.exists() {
+            fs::rename(&policy, &last).with_context(|| format!("renaming {}", policy.display()))?;
+        }
+        fs::copy(&gate_policy, &policy).with_context(|| format!("copying {} to {}", gate_policy.display(), policy.display()))?;
+    }
+
     // Evaluation of the final policy.
     let evaluation = if cfg.eval.episodes > 0 && run.join("policy.safetensors").exists() {
         // Only this evaluation's pictures remain.
@@ -1125,14 +1209,22 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         average_steps: trailing_mean(rows.iter().map(|e| f64::from(e.steps)), w),
         window: w,
         criteria_met_at: milestone,
+        criteria_evaluation,
+        convergence_episode: protocol::convergence_episode(&rows, w, cfg.stop.convergence_tolerance),
         actor_restarts: actors.iter().map(|a| a.restarts).sum(),
         steady,
         evaluation,
     };
     fs::write(run.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     eprintln!(
-        "done: {} episodes, {} env steps, {} updates in {:.0} s; avg{w} return {:.1}, steps {:.0}",
-        summary.episodes, fmt_int(summary.env_steps), fmt_int(summary.updates), summary.wall_s, summary.average_return, summary.average_steps
+        "done: {} episodes, {} env steps, {} updates in {:.0} s; avg{w} return {:.1}, steps {:.0}; convergence episode {}",
+        summary.episodes,
+        fmt_int(summary.env_steps),
+        fmt_int(summary.updates),
+        summary.wall_s,
+        summary.average_return,
+        summary.average_steps,
+        summary.convergence_episode.map_or("-".to_owned(), |e| e.to_string())
     );
     eprintln!("  pictures: {}/curves.png, {}/eval/; summary: {}/summary.json", run.display(), run.display(), run.display());
     Ok(())
@@ -1274,6 +1366,22 @@ mod tests {
         assert!(set_path(&mut doc, "map.inner", "1").is_err(), "map is a string, not a section");
         set_path(&mut doc, "learner.no_such_field", "1").unwrap();
         assert!(serde_yaml::from_value::<TrainConfig>(doc).is_err(), "unknown fields are refused");
+    }
+
+    #[test]
+    fn an_evaluation_goal_backs_the_averages_and_is_in_the_env1_presets() {
+        let mut cfg: TrainConfig = serde_yaml::from_str(&preset_text("env1-sac").unwrap()).unwrap();
+        let goal = cfg.stop.eval_goal().expect("env1-sac stops on an evaluation too");
+        assert_eq!((goal.eqs, goal.ees, goal.max_collisions), (Some(91.0), Some(2.63), 0), "Table III SAC");
+        cfg.stop.average_return = None;
+        cfg.stop.average_steps = None;
+        let e = cfg.resolve().unwrap_err().to_string();
+        assert!(e.contains("stop.eval_eqs"), "{e}");
+        for (p, eqs, ees) in [("env1-td3", 113.0, 2.40), ("env1-ddpg", 81.0, 1.82)] {
+            let cfg: TrainConfig = serde_yaml::from_str(&preset_text(p).unwrap()).unwrap();
+            let g = cfg.stop.eval_goal().unwrap();
+            assert_eq!((g.eqs, g.ees), (Some(eqs), Some(ees)), "{p}");
+        }
     }
 
     #[test]
