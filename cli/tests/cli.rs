@@ -122,3 +122,23 @@ fn rasterized_map_reloads_as_a_ros_map_with_the_same_obstacles() {
     let (a, b) = (ros.scene(0.0, 2.0).cast_ray(-18.0, 0.0, 1.0, 0.0, 12.0), vec.scene(0.0, 2.0).cast_ray(-18.0, 0.0, 1.0, 0.0, 12.0));
     assert!((a - b).abs() <= 0.11, "{a} vs {b}");
 }
+
+#[test]
+fn maps_stats_and_analyze_eqs_print_json() {
+    // env1's largest minimum range keeps a parked car below the paper's 0.32 per step.
+    let o = mapless(&["maps", "stats", "env1", "--grid", "0.5", "--headings", "12", "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let b = &v["bounds"];
+    assert!(b["standing_still_per_step"].as_f64().unwrap() < 0.32, "{v}");
+    assert!(b["per_step"].as_f64().unwrap() > b["standing_still_per_step"].as_f64().unwrap());
+    // The EQS analysis: every candidate reading against the paper's 12 rows, best first.
+    let o = mapless(&["analyze", "eqs", "--trajectories", "40", "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["rows"].as_array().unwrap().len(), 12);
+    let readings = v["readings"].as_array().unwrap();
+    assert_eq!(readings.len(), 28);
+    assert!(readings.windows(2).all(|w| w[0]["rows_fitting"].as_u64() >= w[1]["rows_fitting"].as_u64()));
+    assert!(mapless(&["analyze", "eqs", "--trajectories", "0"]).status.code() != Some(0));
+}
