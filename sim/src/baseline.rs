@@ -2,8 +2,9 @@
 //! down when the way ahead closes. It gives demos and tests a sensible non-random trajectory and
 //! is a floor that learned policies should beat on EQS/EES. It is not from the paper.
 
-/// Action in [−1, 1]² from measured ranges (metres) at beam angles relative to the heading.
-pub fn wander(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64) -> [f32; 2] {
+/// The smallest range within ±0.3 rad of the heading, and the turn command towards the side
+/// with more room (hard over when the way ahead closes to 2 m).
+fn front_and_turn(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64) -> (f64, f32) {
     let mut left = 0.0f64;
     let mut right = 0.0f64;
     let mut front = max_range_m;
@@ -19,20 +20,28 @@ pub fn wander(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64) -> [f
         }
     }
     let turn = ((left - right) / (left + right).max(1e-6)).clamp(-1.0, 1.0);
-    // Full speed with 3 m of room ahead, stop at 0.6 m.
-    let speed = ((front - 0.6) / 2.4).clamp(0.0, 1.0);
     let turn = if front < 2.0 { turn.signum() } else { turn };
-    [(2.0 * speed - 1.0) as f32, turn as f32]
+    (front, turn as f32)
+}
+
+/// Speed command that is full with 3 m of room ahead and stops at 0.6 m.
+fn approach_speed(front_m: f64) -> f32 {
+    (2.0 * ((front_m - 0.6) / 2.4).clamp(0.0, 1.0) - 1.0) as f32
+}
+
+/// Action in [−1, 1]² from measured ranges (metres) at beam angles relative to the heading.
+pub fn wander(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64) -> [f32; 2] {
+    let (front, turn) = front_and_turn(ranges_m, beam_angles_rad, max_range_m);
+    [approach_speed(front), turn]
 }
 
 /// The same steering as [`wander`] at a set speed, `speed_fraction` of v_max (slowing only when
 /// the way ahead closes to 1.5 m): a scripted driver at the paper's speeds, whose per-step reward
 /// shows what a world pays for driving (`sim/tests/paper_worlds.rs`).
 pub fn cruise(ranges_m: &[f32], beam_angles_rad: &[f64], max_range_m: f64, speed_fraction: f64) -> [f32; 2] {
-    let [a_speed, turn] = wander(ranges_m, beam_angles_rad, max_range_m);
-    let front = ranges_m.iter().zip(beam_angles_rad).filter(|(_, a)| a.abs() < 0.3).map(|(r, _)| f64::from(*r)).fold(max_range_m, f64::min);
+    let (front, turn) = front_and_turn(ranges_m, beam_angles_rad, max_range_m);
     let wanted = 2.0 * speed_fraction.clamp(0.0, 1.0) - 1.0;
-    let speed = if front < 1.5 { f64::from(a_speed).min(wanted) } else { wanted };
+    let speed = if front < 1.5 { f64::from(approach_speed(front)).min(wanted) } else { wanted };
     // Half the steering while the way ahead is open: less weaving, less ω² penalty.
     let turn = if front > 3.0 { 0.5 * turn } else { turn };
     [speed as f32, turn]
