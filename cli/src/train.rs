@@ -933,10 +933,30 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let mut last_progress_eval = Instant::now();
     let mut steady_start: Option<(Instant, u64, u64)> = None;
     // The evaluation of the stop criterion running now (on a copy of the policy it judges).
+    // Its milestone is taken when the policy is copied: the point of training it judges.
     let gate_policy = run.join("policy-criteria.safetensors");
-    let mut gate_eval: Option<std::thread::JoinHandle<Result<eval::EvalSummary>>> = None;
+    let mut gate_eval: Option<(Milestone, std::thread::JoinHandle<Result<eval::EvalSummary>>)> = None;
     let mut last_gate_eval: Option<Instant> = None;
     let mut criteria_evaluation: Option<eval::EvalSummary> = None;
+    let goal = |name: &str, g: Option<f64>| g.map(|g| format!("{name} ≥ {g}"));
+    let averages = || [goal("return", cfg.stop.average_return), goal("steps", cfg.stop.average_steps)].into_iter().flatten().collect::<Vec<String>>().join(", ");
+    // Records a finished evaluation of the stop criterion; `Some(reason)` when it met the goal.
+    let judge = |at: Milestone, joined: std::thread::Result<Result<eval::EvalSummary>>, wall_s: f64| -> Result<Option<(Milestone, String, eval::EvalSummary)>> {
+        match joined {
+            Ok(Ok(s)) => {
+                let gate = cfg.stop.eval_goal().expect("a gate evaluation runs only with a goal");
+                append_eval(&run, wall_s, "criteria", &s)?;
+                if gate.met_by(&s) {
+                    let why = format!("order-{} moving averages reached the goal ({}) and an evaluation of policy v{} met {} ({})", cfg.stop.window, averages(), s.policy_version, gate.describe(), s.one_line());
+                    return Ok(Some((at, why, s)));
+                }
+                tracing::info!(policy_version = s.policy_version, "averages met, evaluation short of {}: {}", gate.describe(), s.one_line());
+            }
+            Ok(Err(e)) => tracing::warn!(error = %format!("{e:#}"), "evaluation of the stop criterion failed"),
+            Err(_) => tracing::warn!("evaluation of the stop criterion panicked"),
+        }
+        Ok(None)
+    };
 
     loop {
         // Lines from children (the learner's status, actors' final reports).
@@ -1030,40 +1050,33 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         }
         // Stop criteria: the moving averages, backed (when the preset asks) by an evaluation of
         // the newest policy that reaches the paper's exploration figures.
-        let goal = |name: &str, g: Option<f64>| g.map(|g| format!("{name} ≥ {g}"));
-        let averages = || [goal("return", cfg.stop.average_return), goal("steps", cfg.stop.average_steps)].into_iter().flatten().collect::<Vec<String>>().join(", ");
-        if let Some(h) = gate_eval.take_if(|h| h.is_finished()) {
+        let now = |rows: &[EpisodeRow]| Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates };
+        if let Some((at, h)) = gate_eval.take_if(|(_, h)| h.is_finished()) {
             last_gate_eval = Some(Instant::now());
-            match h.join() {
-                Ok(Ok(s)) => {
-                    let gate = cfg.stop.eval_goal().expect("a gate evaluation runs only with a goal");
-                    append_eval(&run, offset_s + started.elapsed().as_secs_f64(), "criteria", &s)?;
-                    if gate.met_by(&s) && milestone.is_none() {
-                        milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
-                        stopped_because = format!("order-{} moving averages reached the goal ({}) and an evaluation of policy v{} met {} ({})", cfg.stop.window, averages(), s.policy_version, gate.describe(), s.one_line());
-                        criteria_evaluation = Some(s);
-                        stop.store(true, Ordering::Relaxed);
-                    } else {
-                        tracing::info!(policy_version = s.policy_version, "averages met, evaluation short of {}: {}", gate.describe(), s.one_line());
-                    }
-                }
-                Ok(Err(e)) => tracing::warn!(error = %format!("{e:#}"), "evaluation of the stop criterion failed"),
-                Err(_) => tracing::warn!("evaluation of the stop criterion panicked"),
+            if let Some((at, why, s)) = judge(at, h.join(), offset_s + started.elapsed().as_secs_f64())?
+                && milestone.is_none()
+            {
+                milestone = Some(at);
+                stopped_because = why;
+                criteria_evaluation = Some(s);
+                stop.store(true, Ordering::Relaxed);
             }
         }
         if milestone.is_none() && rows.len() > first_episode_this_session && averages_met(&rows, &cfg.stop) {
             if cfg.stop.eval_goal().is_none() {
-                milestone = Some(Milestone { wall_s: offset_s + started.elapsed().as_secs_f64(), episode: rows.len() as u64, env_steps: inserts_total, updates: ls.updates });
+                milestone = Some(now(&rows));
                 stopped_because = format!("order-{} moving averages reached the goal ({})", cfg.stop.window, averages());
                 stop.store(true, Ordering::Relaxed);
             } else if gate_eval.is_none() && last_gate_eval.is_none_or(|t| t.elapsed() >= GATE_EVAL_COOLDOWN) && run.join("policy.safetensors").exists() {
                 // Judge a copy: the learner keeps replacing policy.safetensors.
                 fs::copy(run.join("policy.safetensors"), &gate_policy).with_context(|| format!("copying the policy to {}", gate_policy.display()))?;
                 let (policy, map, env, n, seed) = (gate_policy.clone(), eval_map.clone(), cfg.env.clone(), cfg.stop.eval_episodes, eval_seed);
-                gate_eval = Some(std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, None))?);
+                let handle = std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, None))?;
+                gate_eval = Some((now(&rows), handle));
             }
         }
         if let Some(k) = cfg.stop.episodes
+            && !stop.load(Ordering::Relaxed)
             && rows.len() as u64 >= k
         {
             stopped_because = format!("{k} episodes");
@@ -1072,6 +1085,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         // Minutes of the whole run, like episodes: a resumed run counts its earlier sessions
         // (up to its last recorded episode).
         if let Some(m) = cfg.stop.minutes
+            && !stop.load(Ordering::Relaxed)
             && offset_s + started.elapsed().as_secs_f64() >= m * 60.0
         {
             stopped_because = format!("{m} minutes");
@@ -1149,8 +1163,15 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         p.finish(&run)?;
     }
 
-    if let Some(h) = gate_eval.take() {
-        let _ = h.join();
+    // An evaluation of the stop criterion still running when a cap or Ctrl-C stopped the run
+    // ends first; if it met the goal, the run met its criteria after all.
+    if let Some((at, h)) = gate_eval.take()
+        && let Some((at, why, s)) = judge(at, h.join(), offset_s + started.elapsed().as_secs_f64())?
+        && milestone.is_none()
+    {
+        milestone = Some(at);
+        stopped_because = format!("{stopped_because}; meanwhile {why}");
+        criteria_evaluation = Some(s);
     }
     // A run stopped by its criteria keeps the policy that met them as its policy; the learner's
     // last one (a few seconds of training later) stays beside it.
