@@ -78,7 +78,7 @@ enum Cmd {
 enum AnalyzeCmd {
     /// Which reading of the paper's EQS formula fits every row of its Tables III–V: a Monte
     /// Carlo of trajectories of each row's length (d = EQS/EES) under the car's kinematics,
-    /// scored under each candidate reading (docs/simulator.md, "The EQS reading").
+    /// scored under each candidate reading (docs/simulator.md, "EQS and EES — the reading the paper's tables support").
     Eqs {
         /// Simulated trajectories per paper row.
         #[arg(long, default_value_t = 2000)]

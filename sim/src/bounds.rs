@@ -12,10 +12,12 @@
 //! lattice × `headings` headings) with noiseless ranges; the bounds add 4 σ of the range noise
 //! (a reading exceeds its true range by more with probability 3·10⁻⁵). The grid can miss a
 //! better pose between its points, so the bound is a measured figure, not a proof: keep the
-//! lattice fine (0.1 m, 5° in the docs' figures).
+//! lattice fine (0.1 m, 5° in the docs' figures). With eq. (2)'s bands the bounds are the
+//! reward's supremum over every minimum range up to r_max.
 
 use serde::Serialize;
 
+use crate::config::RewardConfig;
 use crate::env::World;
 use crate::sensor::RangeSensor;
 use crate::vehicle::Pose;
@@ -35,6 +37,17 @@ pub struct RewardBounds {
     pub per_step: f64,
     /// Per-step reward of a car that does not move, at most.
     pub standing_still_per_step: f64,
+}
+
+/// The least upper bound of the reward over minimum ranges in [0, r_max] at speed v and no turn.
+/// Eq. (1)'s r² term grows with r, so its best is at r_max; a positive band of eq. (2) pays most
+/// just inside its upper edge, so each band's edge (or r_max, if lower) is a candidate too.
+fn sup_reward(reward: &RewardConfig, r_max_m: f64, v_mps: f64) -> f64 {
+    let at = |r: f64| {
+        let bands: f64 = reward.bands.iter().filter(|b| b.min_m < r && r <= b.max_m).map(|b| b.value).sum();
+        reward.range_weight * r * r + reward.speed_weight * v_mps * v_mps + bands
+    };
+    reward.bands.iter().filter(|b| b.min_m < r_max_m).map(|b| at(b.max_m.min(r_max_m))).fold(at(r_max_m), f64::max)
 }
 
 /// Scans the world on a `grid_m` lattice with `headings` headings per position.
@@ -72,12 +85,32 @@ pub fn reward_bounds(world: &World, grid_m: f64, headings: usize) -> RewardBound
         }
     }
     let r = (best + 4.0 * cfg.sensor.noise_std_m).min(cfg.sensor.max_range_m);
+    let reward = &cfg.reward;
     RewardBounds {
         max_min_range_m: best,
         at,
         mean_min_range_m: if poses > 0 { sum / poses as f64 } else { 0.0 },
         poses,
-        per_step: cfg.reward.reward(r, cfg.vehicle.v_max_mps, 0.0),
-        standing_still_per_step: cfg.reward.reward(r, 0.0, 0.0),
+        per_step: sup_reward(reward, r, cfg.vehicle.v_max_mps),
+        standing_still_per_step: sup_reward(reward, r, 0.0),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bands_count_where_they_can_be_reached() {
+        let eq1 = RewardConfig::exploration();
+        // Eq. (1): the r² term at r_max: 0.0075 · 36 + 1.5 · 0.25 = 0.645.
+        assert!((sup_reward(&eq1, 6.0, 0.5) - 0.645).abs() < 1e-12);
+        // Eq. (2): +2 just inside 2.5 m beats r_max = 6 m: 0.0075 · 6.25 + 2 = 2.046875
+        // (the −50 band below 1 m never helps).
+        let eq2 = RewardConfig::search_and_rescue();
+        assert!((sup_reward(&eq2, 6.0, 0.0) - 2.046875).abs() < 1e-12);
+        // Below 2.5 m the band's best is at r_max itself; below 2 m it cannot be reached.
+        assert!((sup_reward(&eq2, 2.2, 0.0) - (0.0075 * 2.2 * 2.2 + 2.0)).abs() < 1e-12);
+        assert!((sup_reward(&eq2, 1.5, 0.0) - 0.0075 * 2.25).abs() < 1e-12);
     }
 }

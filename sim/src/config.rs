@@ -193,7 +193,7 @@ pub enum InnerSum {
 
 /// EQS / EES scoring grid (paper §IV-B). The reading — cell size, ring width, inner sum — is
 /// the one `mapless analyze eqs` finds consistent with every row of the paper's Tables III–V
-/// (docs/simulator.md, "The EQS reading"); the others stay selectable.
+/// (docs/simulator.md, "EQS and EES — the reading the paper's tables support"); the others stay selectable.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct ExplorationConfig {

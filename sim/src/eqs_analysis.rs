@@ -270,7 +270,7 @@ fn quantile(sorted: &[u64], q: f64) -> f64 {
 /// Runs the analysis: `n` trajectories per row, every candidate reading. `progress` is called
 /// after each row with (rows done, rows).
 pub fn analyze(readings: &[Reading], n: usize, seed: u64, mut progress: impl FnMut(usize, usize)) -> crate::error::Result<Analysis> {
-    assert!(n >= 1, "at least one trajectory per row");
+    assert!(n >= 1 && !readings.is_empty(), "at least one trajectory per row and one reading");
     let rows = paper_trajectories();
     let vc = VehicleConfig::default();
     // scores[reading][row] = sorted EQS values.
