@@ -330,7 +330,7 @@ fn analyze_eqs(trajectories: usize, seed: u64, out: Option<&std::path::Path>, js
     if trajectories == 0 {
         bail!("--trajectories must be >= 1");
     }
-    let readings = mapless_sim::eqs_analysis::Reading::candidates();
+    let readings = mapless_sim::eqs_analysis::candidate_readings();
     let t0 = std::time::Instant::now();
     let a = mapless_sim::eqs_analysis::analyze(&readings, trajectories, seed, |done, all| {
         eprintln!("analyze eqs: {done}/{all} paper rows simulated ({:.1} s)", t0.elapsed().as_secs_f64());
@@ -349,7 +349,7 @@ fn analyze_eqs(trajectories: usize, seed: u64, out: Option<&std::path::Path>, js
         Some(best) => println!("Supported by every row: {} (worst row {:.1} % from a tail).", best.label, best.worst_tail),
         None => println!("No candidate reading fits every row; best: {}.", a.readings[0].label),
     }
-    if let Some(d) = a.readings.iter().find(|r| r.reading.exploration() == default) {
+    if let Some(d) = a.readings.iter().find(|r| r.reading == default) {
         println!("The simulator's default ({}): {}/{} rows fit, worst row {:.1} % from a tail.", d.label, d.rows_fitting, d.rows.len(), d.worst_tail);
     }
     Ok(())

@@ -35,38 +35,28 @@ use crate::paper;
 use crate::scene::Aabb;
 use crate::vehicle::Pose;
 
-/// One reading of the printed formula.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Reading {
-    pub cell_area_m2: f64,
-    pub ring_width_m: f64,
-    pub inner_sum: InnerSum,
+/// A reading's name, e.g. `linear, 2.5 m rings, 4 m² cells`. A reading of the printed formula
+/// is an [`ExplorationConfig`]: cell area, ring width, inner sum.
+pub fn label(r: &ExplorationConfig) -> String {
+    let inner = match r.inner_sum {
+        InnerSum::Linear => "linear",
+        InnerSum::Triangular => "triangular",
+    };
+    format!("{inner}, {} m rings, {} m² cells", r.ring_width_m, r.cell_area_m2)
 }
 
-impl Reading {
-    pub fn exploration(&self) -> ExplorationConfig {
-        ExplorationConfig { cell_area_m2: self.cell_area_m2, ring_width_m: self.ring_width_m, inner_sum: self.inner_sum }
-    }
-    pub fn label(&self) -> String {
-        let inner = match self.inner_sum {
-            InnerSum::Linear => "linear",
-            InnerSum::Triangular => "triangular",
-        };
-        format!("{inner}, {} m rings, {} m² cells", self.ring_width_m, self.cell_area_m2)
-    }
-    /// The readings compared: 2 m² (side √2 m) and 2 m × 2 m cells; ring widths from 2 to 10 m;
-    /// linear and triangular inner sums.
-    pub fn candidates() -> Vec<Reading> {
-        let mut v = Vec::new();
-        for inner_sum in [InnerSum::Linear, InnerSum::Triangular] {
-            for cell_area_m2 in [2.0, 4.0] {
-                for ring_width_m in [2.0, 2.5, 3.0, 4.0, 5.0, 7.5, 10.0] {
-                    v.push(Reading { cell_area_m2, ring_width_m, inner_sum });
-                }
+/// The readings compared: 2 m² (side √2 m) and 2 m × 2 m cells; ring widths from 2 to 10 m;
+/// linear and triangular inner sums.
+pub fn candidate_readings() -> Vec<ExplorationConfig> {
+    let mut v = Vec::new();
+    for inner_sum in [InnerSum::Linear, InnerSum::Triangular] {
+        for cell_area_m2 in [2.0, 4.0] {
+            for ring_width_m in [2.0, 2.5, 3.0, 4.0, 5.0, 7.5, 10.0] {
+                v.push(ExplorationConfig { cell_area_m2, ring_width_m, inner_sum });
             }
         }
-        v
     }
+    v
 }
 
 /// One scored trajectory of the paper: a row of Table III, IV or V.
@@ -128,7 +118,7 @@ pub struct RowFit {
 /// One reading against every row.
 #[derive(Clone, Debug, Serialize)]
 pub struct ReadingFit {
-    pub reading: Reading,
+    pub reading: ExplorationConfig,
     pub label: String,
     pub rows: Vec<RowFit>,
     /// Rows between the 2.5th and 97.5th percentiles.
@@ -152,7 +142,7 @@ impl Analysis {
     pub fn supported(&self) -> Option<&ReadingFit> {
         self.readings.first().filter(|r| r.rows_fitting == self.rows.len())
     }
-    pub fn find(&self, reading: &Reading) -> Option<&ReadingFit> {
+    pub fn find(&self, reading: &ExplorationConfig) -> Option<&ReadingFit> {
         self.readings.iter().find(|r| &r.reading == reading)
     }
 
@@ -269,7 +259,7 @@ fn quantile(sorted: &[u64], q: f64) -> f64 {
 
 /// Runs the analysis: `n` trajectories per row, every candidate reading. `progress` is called
 /// after each row with (rows done, rows).
-pub fn analyze(readings: &[Reading], n: usize, seed: u64, mut progress: impl FnMut(usize, usize)) -> crate::error::Result<Analysis> {
+pub fn analyze(readings: &[ExplorationConfig], n: usize, seed: u64, mut progress: impl FnMut(usize, usize)) -> crate::error::Result<Analysis> {
     assert!(n >= 1 && !readings.is_empty(), "at least one trajectory per row and one reading");
     let rows = paper_trajectories();
     let vc = VehicleConfig::default();
@@ -277,7 +267,7 @@ pub fn analyze(readings: &[Reading], n: usize, seed: u64, mut progress: impl FnM
     let mut scores: Vec<Vec<Vec<u64>>> = vec![Vec::with_capacity(rows.len()); readings.len()];
     for (ri, row) in rows.iter().enumerate() {
         let b = world_box(row.world)?;
-        let mut trackers: Vec<ExplorationTracker> = readings.iter().map(|r| ExplorationTracker::new(b, &r.exploration())).collect();
+        let mut trackers: Vec<ExplorationTracker> = readings.iter().map(|r| ExplorationTracker::new(b, r)).collect();
         let mut rng = Pcg64Mcg::seed_from_u64(seed ^ (ri as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
         let mut per_reading: Vec<Vec<u64>> = vec![Vec::with_capacity(n); readings.len()];
         let mut drawn = 0;
@@ -309,7 +299,7 @@ pub fn analyze(readings: &[Reading], n: usize, seed: u64, mut progress: impl FnM
                 .collect();
             let rows_fitting = rows.iter().filter(|r| r.fits).count();
             let worst_tail = rows.iter().map(|r| r.percentile.min(100.0 - r.percentile)).fold(f64::INFINITY, f64::min);
-            ReadingFit { reading: *reading, label: reading.label(), rows, rows_fitting, worst_tail }
+            ReadingFit { reading: reading.clone(), label: label(reading), rows, rows_fitting, worst_tail }
         })
         .collect();
     fits.sort_by(|a, b| b.rows_fitting.cmp(&a.rows_fitting).then(b.worst_tail.total_cmp(&a.worst_tail)));
@@ -322,11 +312,10 @@ mod tests {
 
     #[test]
     fn the_default_reading_fits_every_row_and_the_rejected_ones_do_not() {
-        let first_guess = Reading { cell_area_m2: 2.0, ring_width_m: 10.0, inner_sum: InnerSum::Linear };
-        let literal = Reading { cell_area_m2: 2.0, ring_width_m: 10.0, inner_sum: InnerSum::Triangular };
+        let first_guess = ExplorationConfig { cell_area_m2: 2.0, ring_width_m: 10.0, inner_sum: InnerSum::Linear };
+        let literal = ExplorationConfig { inner_sum: InnerSum::Triangular, ..first_guess.clone() };
         let default = ExplorationConfig::default();
-        let default = Reading { cell_area_m2: default.cell_area_m2, ring_width_m: default.ring_width_m, inner_sum: default.inner_sum };
-        let a = analyze(&[first_guess, literal, default], 300, 11, |_, _| {}).unwrap();
+        let a = analyze(&[first_guess.clone(), literal.clone(), default.clone()], 300, 11, |_, _| {}).unwrap();
         let fit = a.find(&default).unwrap();
         assert_eq!(fit.rows_fitting, 12, "{}", a.markdown());
         assert!(fit.worst_tail > 5.0, "{}", a.markdown());
