@@ -11,10 +11,10 @@ use mapless_learner::weights::read_safetensors_file;
 use mapless_sim::render::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, World};
 use rand::SeedableRng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// One evaluation episode.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvalEpisode {
     pub episode: u32,
     pub steps: u32,
@@ -28,7 +28,7 @@ pub struct EvalEpisode {
 }
 
 /// Episodes and their means.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvalSummary {
     pub map: String,
     pub policy_version: u64,

@@ -10,6 +10,7 @@
 //!   mapless eval --run runs/NAME --map env3  the trained policy on any map, with pictures
 //!   mapless learner --config FILE          the learner process (started by `train`)
 //!   mapless analyze eqs                    which EQS reading the paper's tables support
+//!   mapless reproduce [--quick|--full]     the paper's matrix; Tables II–V and figures in docs/results
 //! ```
 
 use std::path::PathBuf;
@@ -25,6 +26,7 @@ use rand::{Rng, SeedableRng};
 mod eval;
 mod learner_cmd;
 mod protocol;
+mod reproduce;
 mod signals;
 mod train;
 
@@ -67,6 +69,10 @@ enum Cmd {
         #[command(subcommand)]
         cmd: BenchCmd,
     },
+    /// The paper's experiment matrix (env1/env2 × DDPG/TD3/SAC, the six agents on env3, SAC on
+    /// outdoor20) over several seeds, then a page with Tables II–V and the figures beside the
+    /// paper's. Resumes after an interruption; runs as many experiments at once as the cores allow.
+    Reproduce(reproduce::ReproduceArgs),
     /// Analyses of the paper's own numbers.
     Analyze {
         #[command(subcommand)]
@@ -271,6 +277,7 @@ fn main() {
         Cmd::Learner { .. } => "learner",
         Cmd::Train(_) => "supervisor",
         Cmd::Eval(_) => "eval",
+        Cmd::Reproduce(_) => "reproduce",
         _ => "cli",
     };
     mapless_replay::logging::identify(&[("role", role)]);
@@ -291,6 +298,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Rollout(a) => rollout(a),
         Cmd::Train(a) => train::train(&a, log_json),
         Cmd::Eval(a) => eval_cmd(&a),
+        Cmd::Reproduce(a) => reproduce::reproduce(&a),
         Cmd::Learner { config, run } => {
             mapless_replay::logging::identify(&[("run", &run), ("role", "learner")]);
             learner_cmd::run(&config)

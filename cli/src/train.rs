@@ -260,8 +260,10 @@ fn default_table() -> TableConfig {
     t.rate_limiter.min_size_to_sample = 2_500;
     t.rate_limiter.error_buffer = 20_000.0;
     // The limiter's slack must cover the largest insert batch × the ratio (see
-    // RateLimiterConfig); actors send `actors.batch_rows` rows at a time.
-    t.max_batch_rows = 512;
+    // RateLimiterConfig); actors send `actors.batch_rows` (+ up to `actors.vehicles`) rows at a
+    // time. 128 rows × the paper's ratio of 128 (one update per step) = 16,384 ≤ 20,000, so
+    // either ratio runs with this slack.
+    t.max_batch_rows = 128;
     t.max_sample_rows = 4096;
     t
 }
@@ -332,6 +334,47 @@ pub fn set_path(doc: &mut serde_yaml::Value, path: &str, value: &str) -> Result<
     Ok(())
 }
 
+/// A config document (a preset, `--set` applied, or a run's `config.yaml`) as a `TrainConfig`,
+/// unresolved. This command's defaults for the replay table and the learner's cadence lie
+/// under what the document says, field by field: a preset that sets
+/// `replay.rate_limiter.samples_per_insert` keeps every other field of `default_table()`, and
+/// `--set replay.capacity=…` changes one field instead of replacing the section.
+pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
+    if let Some(m) = doc.as_mapping_mut() {
+        for (key, defaults) in [("replay", serde_yaml::to_value(default_table())?), ("driver", serde_yaml::to_value(default_driver())?)] {
+            let key = serde_yaml::Value::String(key.into());
+            let merged = match m.remove(&key) {
+                Some(over) => overlay(defaults, over),
+                None => defaults,
+            };
+            m.insert(key, merged);
+        }
+    }
+    serde_yaml::from_value(doc).context("config")
+}
+
+/// A built-in preset (or a preset file) as a `TrainConfig`, unresolved.
+pub fn preset_config(preset: &str) -> Result<TrainConfig> {
+    parse_config(serde_yaml::from_str(&preset_text(preset)?).context("preset YAML")?)
+}
+
+/// `over` laid over `base`: mappings merge key by key (recursively), anything else replaces.
+fn overlay(base: serde_yaml::Value, over: serde_yaml::Value) -> serde_yaml::Value {
+    match (base, over) {
+        (serde_yaml::Value::Mapping(mut b), serde_yaml::Value::Mapping(o)) => {
+            for (k, v) in o {
+                let merged = match b.remove(&k) {
+                    Some(old) => overlay(old, v),
+                    None => v,
+                };
+                b.insert(k, merged);
+            }
+            serde_yaml::Value::Mapping(b)
+        }
+        (_, over) => over,
+    }
+}
+
 /// A preset's YAML: a built-in name or a file path.
 pub fn preset_text(preset: &str) -> Result<String> {
     if let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == preset) {
@@ -390,13 +433,6 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
             (doc, args.run.clone().unwrap_or_else(|| PathBuf::from("runs").join(name)), false)
         }
     };
-    // Sections a preset leaves out take this command's defaults in full, so that `--set
-    // replay.capacity=…` changes one field of them instead of replacing them.
-    if let Some(m) = doc.as_mapping_mut() {
-        for (key, value) in [("replay", serde_yaml::to_value(default_table())?), ("driver", serde_yaml::to_value(default_driver())?)] {
-            m.entry(serde_yaml::Value::String(key.into())).or_insert(value);
-        }
-    }
     if let Some(n) = args.actors {
         set_path(&mut doc, "actors.count", &n.to_string())?;
     }
@@ -413,8 +449,7 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
         let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
         set_path(&mut doc, k.trim(), v.trim())?;
     }
-    let cfg: TrainConfig = serde_yaml::from_value(doc).context("config")?;
-    Ok((cfg.resolve()?, run, resuming))
+    Ok((parse_config(doc)?.resolve()?, run, resuming))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -705,46 +740,50 @@ struct LearnerStatus {
     weights_version: u64,
 }
 
-/// What `summary.json` holds.
-#[derive(Serialize, Debug)]
-struct Summary {
-    run: String,
-    preset: String,
-    stopped_because: String,
-    wall_s: f64,
-    episodes: u64,
-    env_steps: u64,
-    updates: u64,
-    weights_version: u64,
-    average_return: f64,
-    average_steps: f64,
-    window: usize,
-    criteria_met_at: Option<Milestone>,
+/// What `summary.json` holds (`mapless reproduce` reads it back).
+#[derive(Serialize, Deserialize, Debug)]
+pub struct Summary {
+    pub run: String,
+    pub preset: String,
+    /// Starts with [`INTERRUPTED`] when Ctrl-C or SIGTERM stopped the run.
+    pub stopped_because: String,
+    pub wall_s: f64,
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub updates: u64,
+    pub weights_version: u64,
+    pub average_return: f64,
+    pub average_steps: f64,
+    pub window: usize,
+    pub criteria_met_at: Option<Milestone>,
     /// The evaluation that met `stop.eval_*` (its policy is the run's `policy.safetensors`).
-    criteria_evaluation: Option<eval::EvalSummary>,
+    pub criteria_evaluation: Option<eval::EvalSummary>,
     /// First episode from which the moving averages stayed within `stop.convergence_tolerance`
     /// of their final values (`protocol::convergence_episode`).
-    convergence_episode: Option<u64>,
-    actor_restarts: u32,
+    pub convergence_episode: Option<u64>,
+    pub actor_restarts: u32,
     /// Throughput after start-up (from 20 s, or a third of a time-limited run, to the stop).
-    steady: Option<Rates>,
-    evaluation: Option<eval::EvalSummary>,
+    pub steady: Option<Rates>,
+    pub evaluation: Option<eval::EvalSummary>,
 }
 
-#[derive(Serialize, Debug)]
-struct Rates {
-    from_s: f64,
-    seconds: f64,
-    env_steps_per_s: f64,
-    updates_per_s: f64,
+/// How `Summary::stopped_because` begins for a run that Ctrl-C or SIGTERM stopped.
+pub const INTERRUPTED: &str = "interrupted";
+
+#[derive(Serialize, Deserialize, Debug)]
+pub struct Rates {
+    pub from_s: f64,
+    pub seconds: f64,
+    pub env_steps_per_s: f64,
+    pub updates_per_s: f64,
 }
 
 #[derive(Serialize, Deserialize, Clone, Debug)]
-struct Milestone {
-    wall_s: f64,
-    episode: u64,
-    env_steps: u64,
-    updates: u64,
+pub struct Milestone {
+    pub wall_s: f64,
+    pub episode: u64,
+    pub env_steps: u64,
+    pub updates: u64,
 }
 
 fn fmt_int(n: u64) -> String {
@@ -923,7 +962,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let mut last_picture = Instant::now();
     let mut pictured = rows.len();
     let mut milestone: Option<Milestone> = None;
-    let mut stopped_because = String::from("interrupted (Ctrl-C)");
+    let mut stopped_because = format!("{INTERRUPTED} (Ctrl-C or SIGTERM)");
     let tty = std::io::stderr().is_terminal();
     let steady_from = cfg.stop.minutes.map_or(20.0, |m| (m * 20.0).min(20.0));
     let eval_map = cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone());
@@ -1333,7 +1372,7 @@ mod tests {
         fn yaml<T: Serialize>(v: &T) -> serde_yaml::Value {
             serde_yaml::to_value(v).expect("serializes")
         }
-        let preset: TrainConfig = serde_yaml::from_str(&preset_text("env1-sac").unwrap()).unwrap();
+        let preset = preset_config("env1-sac").unwrap();
         let preset = preset.resolve().unwrap();
 
         let replay = ServerConfig::from_yaml_file(&dir.join("replay.yaml")).unwrap();
@@ -1358,15 +1397,15 @@ mod tests {
 
     #[test]
     fn every_preset_resolves_and_names_itself() {
-        for (name, text) in PRESETS {
-            let cfg: TrainConfig = serde_yaml::from_str(text).unwrap_or_else(|e| panic!("{name}: {e}"));
+        for (name, _) in PRESETS {
+            let cfg = preset_config(name).unwrap_or_else(|e| panic!("{name}: {e}"));
             let cfg = cfg.resolve().unwrap_or_else(|e| panic!("{name}: {e:#}"));
             assert_eq!(&cfg.name, name);
             assert_eq!(cfg.replay.obs_dim, 17, "{name}: 7 beams → 17 observation values");
         }
-        let sar: TrainConfig = serde_yaml::from_str(preset_text("outdoor20-sac").unwrap().as_str()).unwrap();
+        let sar = preset_config("outdoor20-sac").unwrap();
         assert_eq!(sar.resolve().unwrap().env.reward, RewardConfig::search_and_rescue());
-        let env2: TrainConfig = serde_yaml::from_str(preset_text("env2-td3").unwrap().as_str()).unwrap();
+        let env2 = preset_config("env2-td3").unwrap();
         let env2 = env2.resolve().unwrap();
         assert_eq!((env2.env.episode.max_steps, env2.learner.algorithm), (2000, AlgorithmKind::Td3));
         assert_eq!(env2.noise(), NoiseConfig::TD3_DEFAULT);
@@ -1378,18 +1417,40 @@ mod tests {
         set_path(&mut doc, "learner.actor_lr", "1e-4").unwrap();
         set_path(&mut doc, "replay.rate_limiter.samples_per_insert", "8").unwrap();
         set_path(&mut doc, "stop.average_return", "null").unwrap();
-        let cfg: TrainConfig = serde_yaml::from_value(doc.clone()).unwrap();
+        let cfg = parse_config(doc.clone()).unwrap();
         assert_eq!(cfg.learner.actor_lr, 1e-4);
         assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(8.0));
         assert_eq!(cfg.stop.average_return, None);
         assert!(set_path(&mut doc, "map.inner", "1").is_err(), "map is a string, not a section");
         set_path(&mut doc, "learner.no_such_field", "1").unwrap();
-        assert!(serde_yaml::from_value::<TrainConfig>(doc).is_err(), "unknown fields are refused");
+        assert!(parse_config(doc).is_err(), "unknown fields are refused");
+    }
+
+    fn train_args(preset: &str, set: &[&str]) -> TrainArgs {
+        TrainArgs { preset: preset.into(), actors: None, vehicles: None, episodes: None, minutes: None, run: None, resume: None, set: set.iter().map(|s| (*s).to_owned()).collect(), force: false, print_config: false }
+    }
+
+    #[test]
+    fn a_presets_replay_section_is_laid_over_the_defaults_field_by_field() {
+        // Every preset states its update-to-data ratio; the table's other fields stay this
+        // command's defaults (they were replaced by TableConfig::default() when a preset named
+        // `replay:`).
+        for (name, _) in PRESETS {
+            let (cfg, _, _) = load_config(&train_args(name, &[])).unwrap();
+            let d = default_table();
+            assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(32.0), "{name}");
+            assert_eq!((cfg.replay.rate_limiter.min_size_to_sample, cfg.replay.max_batch_rows), (d.rate_limiter.min_size_to_sample, d.max_batch_rows), "{name}");
+            assert_eq!(cfg.driver, default_driver(), "{name}");
+        }
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["replay.rate_limiter.samples_per_insert=128", "driver.publish_every=10"])).unwrap();
+        assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(128.0));
+        assert_eq!(cfg.replay.rate_limiter.error_buffer, default_table().rate_limiter.error_buffer);
+        assert_eq!((cfg.driver.publish_every, cfg.driver.checkpoint_every), (10, default_driver().checkpoint_every));
     }
 
     #[test]
     fn an_evaluation_goal_backs_the_averages_and_is_in_the_env1_presets() {
-        let mut cfg: TrainConfig = serde_yaml::from_str(&preset_text("env1-sac").unwrap()).unwrap();
+        let mut cfg = preset_config("env1-sac").unwrap();
         let goal = cfg.stop.eval_goal().expect("env1-sac stops on an evaluation too");
         assert_eq!((goal.eqs, goal.ees, goal.max_collisions), (Some(91.0), Some(2.63), 0), "Table III SAC");
         // Without averages to back, the goal does not stop a run (`averages_met` is false).
@@ -1399,7 +1460,7 @@ mod tests {
         assert!(!averages_met(&[row(1, 500.0, 1000)], &cfg.stop));
         cfg.resolve().unwrap();
         for (p, eqs, ees) in [("env1-td3", 113.0, 2.40), ("env1-ddpg", 81.0, 1.82)] {
-            let cfg: TrainConfig = serde_yaml::from_str(&preset_text(p).unwrap()).unwrap();
+            let cfg = preset_config(p).unwrap();
             let g = cfg.stop.eval_goal().unwrap();
             assert_eq!((g.eqs, g.ees), (Some(eqs), Some(ees)), "{p}");
         }

@@ -240,3 +240,60 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     let numbers: Vec<u64> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
     assert_eq!(numbers, (1..=numbers.len() as u64).collect::<Vec<_>>(), "one curve, numbered without gaps");
 }
+
+/// `mapless reproduce` on a slice of the matrix (one experiment, two seeds, two at once): each
+/// seed trains and is evaluated on env3; the page's cells are the means of what the runs
+/// wrote; a second call finds nothing to do; an interrupted run is resumed, not restarted.
+#[test]
+fn reproduce_trains_evaluates_on_env3_resumes_and_writes_the_page() {
+    let dir = tempfile::tempdir().unwrap();
+    let (runs, out) = (dir.path().join("runs"), dir.path().join("results"));
+    let reproduce = || {
+        let mut cmd = Command::new(mapless());
+        cmd.args(["reproduce", "--only", "env1-td3", "--seeds", "2", "--minutes", "0.15", "--jobs", "2"]).arg("--runs").arg(&runs).arg("--out").arg(&out);
+        for s in TINY {
+            cmd.args(["--set", s]);
+        }
+        let o = cmd.env_remove("RUST_LOG").stdin(Stdio::null()).output().expect("mapless reproduce runs");
+        let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(o.status.success(), "mapless reproduce failed:\n{stderr}");
+        stderr
+    };
+    let first = reproduce();
+    assert!(first.contains("2 to do (0 done)"), "{first}");
+    let mut eqs = Vec::new();
+    for k in 1..=2u64 {
+        let run = runs.join("env1-td3").join(format!("seed-{k}"));
+        let s = json(&run.join("summary.json")).expect("a finished run");
+        assert!(s["stopped_because"].as_str().unwrap().contains("minutes"), "{s}");
+        let cfg: serde_yaml::Value = serde_yaml::from_str(&std::fs::read_to_string(run.join("config.yaml")).unwrap()).unwrap();
+        assert_eq!(cfg["seed"].as_u64(), Some(k), "each seed is its own run");
+        assert_eq!(cfg["learner"]["hidden_width"].as_u64(), Some(16), "--set reaches the runs");
+        let e3 = json(&run.join("eval-env3").join("eval.json")).expect("an env3 evaluation");
+        assert_eq!(e3["map"], "env3");
+        let eps = e3["episodes"].as_array().unwrap();
+        assert_eq!(eps.len(), 10);
+        assert!(eps.iter().all(|e| e["steps"].as_u64().unwrap() <= 3000 && (e["collided"] == true || e["steps"] == 3000)), "env3 runs to a collision or 3,000 steps");
+        eqs.push(s["evaluation"]["mean_eqs"].as_f64().unwrap());
+    }
+    let page = std::fs::read_to_string(out.join("README.md")).unwrap();
+    let (m, sd) = ((eqs[0] + eqs[1]) / 2.0, (eqs[0] - eqs[1]).abs() / 2f64.sqrt());
+    let cell = format!("| 113 / {m:.1} ± {sd:.1} |");
+    assert!(page.contains("## Table III") && page.contains(&cell), "the EQS cell {cell} is the mean ± std of the runs' evaluations:\n{page}");
+    assert!(page.contains("| TD3-env1 | 1533 / ") && !page.contains("## Table IV"), "{page}");
+    for f in ["fig08-09-env1-td3.png", "fig10-env1-td3.png", "fig14-env3-env1-td3.png", "results.json"] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    assert!(reproduce().contains("0 to do (2 done)"), "a second call trains nothing");
+
+    // A run that was interrupted is resumed (its log gets a second session).
+    let run2 = runs.join("env1-td3").join("seed-2");
+    let mut s2 = json(&run2.join("summary.json")).unwrap();
+    s2["stopped_because"] = serde_json::json!("interrupted (Ctrl-C or SIGTERM)");
+    std::fs::write(run2.join("summary.json"), s2.to_string()).unwrap();
+    let third = reproduce();
+    assert!(third.contains("1 to do (1 done)"), "{third}");
+    assert!(!json(&run2.join("summary.json")).unwrap()["stopped_because"].as_str().unwrap().starts_with("interrupted"));
+    let log = std::fs::read_to_string(runs.join("env1-td3").join("seed-2.log")).unwrap();
+    assert!(log.contains("=== mapless reproduce: resuming"), "the second session resumed the run:\n{log}");
+}
