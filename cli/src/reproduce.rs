@@ -81,9 +81,10 @@ pub struct ReproduceArgs {
     /// Where the page, the tables and the figures go.
     #[arg(long, default_value = "docs/results")]
     pub out: PathBuf,
-    /// Where the run folders go (kept: rerunning resumes and skips what is done).
-    #[arg(long, default_value = "runs/reproduce")]
-    pub runs: PathBuf,
+    /// Where the run folders go (kept: rerunning resumes and skips what is done)
+    /// [default: runs/reproduce-quick or runs/reproduce-full].
+    #[arg(long)]
+    pub runs: Option<PathBuf>,
     /// Experiments at once [default: cores / 3, at least 1].
     #[arg(long)]
     pub jobs: Option<usize>,
@@ -106,6 +107,10 @@ pub struct ReproduceArgs {
 impl ReproduceArgs {
     fn mode(&self) -> &'static str {
         if self.full { "full" } else { "quick" }
+    }
+
+    fn runs(&self) -> PathBuf {
+        self.runs.clone().unwrap_or_else(|| PathBuf::from(format!("runs/reproduce-{}", self.mode())))
     }
 
     fn minutes(&self) -> Option<f64> {
@@ -135,19 +140,36 @@ impl Job {
         format!("{} seed {}", self.exp.preset, self.seed)
     }
     fn env3_dir(&self) -> PathBuf {
-        self.dir.join("eval-env3")
+        env3_dir(&self.dir)
     }
 }
 
-/// What a run folder says about itself.
-fn finished_summary(dir: &Path) -> Option<Summary> {
-    let text = fs::read_to_string(dir.join("summary.json")).ok()?;
-    let s: Summary = serde_json::from_str(&text).ok()?;
-    (!s.stopped_because.starts_with(INTERRUPTED)).then_some(s)
+/// Where this command evaluates a run on env3 (not `eval-env3/`, which a hand-run `mapless
+/// eval --map env3` fills with its own settings).
+fn env3_dir(run: &Path) -> PathBuf {
+    run.join("reproduce-env3")
 }
 
+/// The finished run in `dir`, if it is one: None when it has no summary yet or was interrupted
+/// before it met its criteria (then it is resumed); an error when a summary is there but cannot
+/// be read (a run is never trained further on a guess).
+fn finished_summary(dir: &Path) -> Result<Option<Summary>> {
+    let path = dir.join("summary.json");
+    let text = match fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+    };
+    let s: Summary = serde_json::from_str(&text).with_context(|| format!("{} is not a run summary; move the run folder away to train it again", path.display()))?;
+    Ok((!s.stopped_because.starts_with(INTERRUPTED) || s.criteria_met_at.is_some()).then_some(s))
+}
+
+/// This command's env3 evaluation of a run, if it is there and is what the page says it is.
 fn read_env3(dir: &Path) -> Option<EvalSummary> {
-    serde_json::from_str(&fs::read_to_string(dir.join("eval.json")).ok()?).ok()
+    let e: EvalSummary = serde_json::from_str(&fs::read_to_string(dir.join("eval.json")).ok()?).ok()?;
+    let limit = paper::ENV3_EVAL_STEPS;
+    let ok = e.map == "env3" && e.episodes.len() == ENV3_EPISODES as usize && e.episodes.iter().all(|x| x.steps <= limit && (x.collided || x.steps == limit));
+    ok.then_some(e)
 }
 
 /// Runs `mapless reproduce`.
@@ -160,24 +182,33 @@ pub fn reproduce(args: &ReproduceArgs) -> Result<()> {
     {
         bail!("--minutes must be > 0");
     }
+    if let Some(kv) = args.set.iter().find(|kv| kv.split('=').next().is_some_and(|k| k.trim() == "seed")) {
+        bail!("--set {kv}: each run's seed is its seed number (seed-K); use --seeds");
+    }
     let experiments = args.experiments()?;
+    let runs = args.runs();
     let jobs: Vec<Job> = experiments
         .iter()
-        .flat_map(|e| (1..=args.seeds).map(move |k| Job { exp: *e, seed: k, dir: args.runs.join(e.preset).join(format!("seed-{k}")) }))
+        .flat_map(|e| (1..=args.seeds).map(|k| Job { exp: *e, seed: k, dir: runs.join(e.preset).join(format!("seed-{k}")) }).collect::<Vec<_>>())
         .collect();
-    if !args.report_only {
-        run_jobs(args, &jobs)?;
-    }
-    let page = report(args, &experiments)?;
+    // The page is written from whatever finished, also when some runs failed or were stopped.
+    let ran = if args.report_only { Ok(()) } else { run_jobs(args, &runs, &jobs) };
+    let page = report(args, &runs, &experiments)?;
     eprintln!("reproduce: wrote {}", page.display());
-    Ok(())
+    ran
 }
 
-fn run_jobs(args: &ReproduceArgs, jobs: &[Job]) -> Result<()> {
+fn run_jobs(args: &ReproduceArgs, runs: &Path, jobs: &[Job]) -> Result<()> {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let parallel = args.jobs.unwrap_or((cores / CORES_PER_EXPERIMENT).max(1)).max(1);
     let exe = std::env::current_exe().context("finding the mapless binary")?;
-    let todo: Vec<Job> = jobs.iter().filter(|j| finished_summary(&j.dir).is_none() || (j.exp.on_env3 && read_env3(&j.env3_dir()).is_none())).cloned().collect();
+    let mut todo = Vec::new();
+    for j in jobs {
+        // An unreadable summary is this job's failure (reported by `run_one`), not the command's.
+        if !matches!(finished_summary(&j.dir), Ok(Some(_))) || (j.exp.on_env3 && read_env3(&j.env3_dir()).is_none()) {
+            todo.push(j.clone());
+        }
+    }
     eprintln!(
         "reproduce ({}): {} experiments × {} seeds = {} runs, {} to do ({} done); {} at once; training capped at {}; runs in {}",
         args.mode(),
@@ -188,7 +219,7 @@ fn run_jobs(args: &ReproduceArgs, jobs: &[Job]) -> Result<()> {
         jobs.len() - todo.len(),
         parallel,
         args.minutes().map_or("the presets' schedules".to_owned(), |m| format!("{m} min per run")),
-        args.runs.display()
+        runs.display()
     );
     if todo.is_empty() {
         return Ok(());
@@ -199,14 +230,18 @@ fn run_jobs(args: &ReproduceArgs, jobs: &[Job]) -> Result<()> {
     let queue = Arc::new(Mutex::new(todo.into_iter().collect::<std::collections::VecDeque<_>>()));
     // Ctrl-C or SIGTERM: nothing new starts, and every running `mapless train` gets SIGTERM
     // (it stops its cluster in order and writes an "interrupted" summary that a rerun resumes).
-    let children = Arc::new(Mutex::new(Vec::<u32>::new()));
+    let children = Arc::new(Mutex::new(Children::default()));
     {
         let (queue, children) = (Arc::clone(&queue), Arc::clone(&children));
         std::thread::spawn(move || {
             let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else { return };
             rt.block_on(crate::signals::termination());
             queue.lock().unwrap_or_else(|e| e.into_inner()).clear();
-            for pid in children.lock().unwrap_or_else(|e| e.into_inner()).iter() {
+            // Under the lock that spawning holds: a child is either in the list now, or is
+            // never started.
+            let mut c = children.lock().unwrap_or_else(|e| e.into_inner());
+            c.stopping = true;
+            for pid in &c.pids {
                 let _ = Command::new("kill").arg("-TERM").arg(pid.to_string()).status();
             }
         });
@@ -224,11 +259,7 @@ fn run_jobs(args: &ReproduceArgs, jobs: &[Job]) -> Result<()> {
                 show_running(&bar, &running);
                 let r = run_one(&exe, &job, minutes, &set, &children);
                 running.lock().unwrap_or_else(|e| e.into_inner()).retain(|(l, _)| *l != job.label());
-                let stop = r.is_err();
                 let _ = tx.send((job, r));
-                if stop {
-                    break;
-                }
             }
         }));
     }
@@ -239,22 +270,30 @@ fn run_jobs(args: &ReproduceArgs, jobs: &[Job]) -> Result<()> {
         match r {
             Ok(line) => bar.suspend(|| eprintln!("  {}: {line}", job.label())),
             Err(e) => {
+                // The other runs go on; the page shows what finished.
                 bar.suspend(|| eprintln!("  {}: FAILED: {e:#}", job.label()));
                 failed.push(job.label());
-                // Nothing new starts after a failure (an interrupted run lands here too).
-                queue.lock().unwrap_or_else(|e| e.into_inner()).clear();
             }
         }
         show_running(&bar, &running);
     }
     for w in workers {
-        let _ = w.join();
+        if w.join().is_err() {
+            failed.push("a worker thread (panicked)".into());
+        }
     }
     bar.finish_and_clear();
     if !failed.is_empty() {
-        bail!("{} run(s) did not finish: {}; run the same command again to resume (logs: {}/PRESET/seed-K.log)", failed.len(), failed.join(", "), args.runs.display());
+        bail!("{} run(s) did not finish: {}; run the same command again to resume (logs: {}/PRESET/seed-K.log)", failed.len(), failed.join(", "), runs.display());
     }
     Ok(())
+}
+
+/// The `mapless train` children now running, and whether a signal has stopped new ones.
+#[derive(Default)]
+struct Children {
+    pids: Vec<u32>,
+    stopping: bool,
 }
 
 fn show_running(bar: &ProgressBar, running: &Mutex<Vec<(String, Instant)>>) {
@@ -263,10 +302,10 @@ fn show_running(bar: &ProgressBar, running: &Mutex<Vec<(String, Instant)>>) {
 }
 
 /// Trains (or resumes, or skips) one run, then evaluates it on env3; a one-line result.
-fn run_one(exe: &Path, job: &Job, minutes: Option<f64>, set: &[String], children: &Mutex<Vec<u32>>) -> Result<String> {
+fn run_one(exe: &Path, job: &Job, minutes: Option<f64>, set: &[String], children: &Mutex<Children>) -> Result<String> {
     let parent = job.dir.parent().expect("run folders have a parent");
     fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
-    if finished_summary(&job.dir).is_none() {
+    if finished_summary(&job.dir)?.is_none() {
         let log_path = parent.join(format!("seed-{}.log", job.seed));
         let log = fs::OpenOptions::new().create(true).append(true).open(&log_path).with_context(|| format!("opening {}", log_path.display()))?;
         let mut cmd = Command::new(exe);
@@ -285,19 +324,25 @@ fn run_one(exe: &Path, job: &Job, minutes: Option<f64>, set: &[String], children
         if let Some(m) = minutes {
             cmd.arg("--minutes").arg(m.to_string());
         }
-        let mut child = cmd.stdin(Stdio::null()).stdout(log.try_clone()?).stderr(log).spawn().with_context(|| format!("starting {}", exe.display()))?;
-        children.lock().unwrap_or_else(|e| e.into_inner()).push(child.id());
+        let mut child = {
+            let mut c = children.lock().unwrap_or_else(|e| e.into_inner());
+            if c.stopping {
+                bail!("stopped before it started");
+            }
+            let child = cmd.stdin(Stdio::null()).stdout(log.try_clone()?).stderr(log).spawn().with_context(|| format!("starting {}", exe.display()))?;
+            c.pids.push(child.id());
+            child
+        };
         let status = child.wait();
-        children.lock().unwrap_or_else(|e| e.into_inner()).retain(|p| *p != child.id());
+        children.lock().unwrap_or_else(|e| e.into_inner()).pids.retain(|p| *p != child.id());
         let status = status?;
         if !status.success() {
             bail!("mapless train exited with {status} (log: {})", log_path.display());
         }
-        if finished_summary(&job.dir).is_none() {
-            bail!("interrupted (log: {})", log_path.display());
-        }
     }
-    let s = finished_summary(&job.dir).expect("checked");
+    let Some(s) = finished_summary(&job.dir)? else {
+        bail!("interrupted (log: {}/seed-{}.log)", parent.display(), job.seed);
+    };
     let own = s.evaluation.as_ref().map_or("no evaluation".to_owned(), |e| format!("EQS {:.1}, EES {:.2}, {} collisions", e.mean_eqs, e.mean_ees, e.collisions));
     let mut line = format!("{} episodes in {:.0} s, avg return {:.1}, steps {:.0}; {own}", s.episodes, s.wall_s, s.average_return, s.average_steps);
     if job.exp.on_env3 {
@@ -338,6 +383,7 @@ impl Stat {
         Some(Stat { mean, std, n })
     }
 
+    /// "m ± s" (one value: "m"); "–" for none.
     fn fmt(s: Option<Stat>, decimals: usize) -> String {
         match s {
             None => "–".into(),
@@ -361,15 +407,30 @@ struct RunResult {
     average_steps: f64,
     convergence_episode: Option<u64>,
     criteria_met_at_s: Option<f64>,
+    /// Order of the moving averages.
+    window: usize,
+    /// From the run's `config.yaml`: its minute and episode caps, and its update-to-data ratio.
+    minutes_cap: Option<f64>,
+    episodes_cap: Option<u64>,
+    samples_per_insert: Option<f64>,
+    batch_size: usize,
     eval: Option<EvalSummary>,
     env3: Option<EvalSummary>,
 }
 
-fn collect(args: &ReproduceArgs, e: &Experiment) -> Vec<RunResult> {
-    (1..=args.seeds)
+impl RunResult {
+    /// Environment steps per learner update, as the run's rate limiter held them.
+    fn steps_per_update(&self) -> Option<f64> {
+        self.samples_per_insert.map(|spi| self.batch_size as f64 / spi)
+    }
+}
+
+fn collect(runs: &Path, seeds: u32, e: &Experiment) -> Vec<RunResult> {
+    (1..=seeds)
         .filter_map(|k| {
-            let dir = args.runs.join(e.preset).join(format!("seed-{k}"));
-            let s = finished_summary(&dir)?;
+            let dir = runs.join(e.preset).join(format!("seed-{k}"));
+            let s = finished_summary(&dir).ok()??;
+            let cfg: TrainConfig = serde_yaml::from_str(&fs::read_to_string(dir.join("config.yaml")).ok()?).ok()?;
             Some(RunResult {
                 preset: e.preset.into(),
                 seed: k,
@@ -382,11 +443,27 @@ fn collect(args: &ReproduceArgs, e: &Experiment) -> Vec<RunResult> {
                 average_steps: s.average_steps,
                 convergence_episode: s.convergence_episode,
                 criteria_met_at_s: s.criteria_met_at.as_ref().map(|m| m.wall_s),
+                window: s.window,
+                minutes_cap: cfg.stop.minutes,
+                episodes_cap: cfg.stop.episodes,
+                samples_per_insert: cfg.replay.rate_limiter.samples_per_insert,
+                batch_size: cfg.learner.batch_size,
                 eval: s.evaluation,
-                env3: read_env3(&dir.join("eval-env3")),
+                env3: read_env3(&env3_dir(&dir)),
             })
         })
         .collect()
+}
+
+/// The distinct values, in order of first appearance, joined with " or "; "–" for none.
+fn distinct(values: impl Iterator<Item = String>) -> String {
+    let mut seen: Vec<String> = Vec::new();
+    for v in values {
+        if !seen.contains(&v) {
+            seen.push(v);
+        }
+    }
+    if seen.is_empty() { "–".into() } else { seen.join(" or ") }
 }
 
 /// `SAC` or `SAC-env1`.
@@ -402,9 +479,9 @@ fn stat(runs: &[RunResult], f: impl Fn(&RunResult) -> Option<f64>) -> Option<Sta
 }
 
 /// The figures of one run: the paper's number for each, the file it came from.
-fn figures(args: &ReproduceArgs, e: &Experiment, runs: &[RunResult]) -> Result<Vec<(String, String)>> {
+fn figures(args: &ReproduceArgs, root: &Path, e: &Experiment, runs: &[RunResult]) -> Result<Vec<(String, String)>> {
     let Some(first) = runs.first() else { return Ok(Vec::new()) };
-    let dir = args.runs.join(e.preset).join(format!("seed-{}", first.seed));
+    let dir = root.join(e.preset).join(format!("seed-{}", first.seed));
     let (curves, traj) = match e.world {
         "env1" => ("fig08-09", "fig10"),
         "env2" => ("fig11-12", "fig13"),
@@ -419,56 +496,72 @@ fn figures(args: &ReproduceArgs, e: &Experiment, runs: &[RunResult]) -> Result<V
         Ok(())
     };
     let alg = e.algorithm.to_uppercase();
-    copy(dir.join("curves.png"), format!("{curves}-{}.png", e.preset), format!("{alg} on {}: return and steps per episode with their order-50 averages (seed {})", e.world, first.seed))?;
-    copy(dir.join("eval").join("episode-1.png"), format!("{traj}-{}.png", e.preset), format!("{alg} on {}: evaluation trajectory 1 of the final policy (seed {})", e.world, first.seed))?;
-    if e.on_env3 {
-        copy(dir.join("eval-env3").join("episode-1.png"), format!("fig14-env3-{}.png", e.preset), format!("{alg} trained on {}, on env3: evaluation trajectory 1 (seed {})", e.world, first.seed))?;
+    copy(dir.join("curves.png"), format!("{curves}-{}.png", e.preset), format!("{alg} on {}: return and steps per episode with their order-{} averages (seed {})", e.world, first.window, first.seed))?;
+    if first.eval.is_some() {
+        copy(dir.join("eval").join("episode-1.png"), format!("{traj}-{}.png", e.preset), format!("{alg} on {}: evaluation trajectory 1 of the final policy (seed {})", e.world, first.seed))?;
+    }
+    if first.env3.is_some() {
+        copy(env3_dir(&dir).join("episode-1.png"), format!("fig14-env3-{}.png", e.preset), format!("{alg} trained on {}, on env3: evaluation trajectory 1 (seed {})", e.world, first.seed))?;
     }
     Ok(out)
 }
 
 /// Writes `OUT/README.md`, `OUT/results.json` and the figures; returns the page's path.
-fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
+fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Result<PathBuf> {
     fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let results: Vec<(Experiment, Vec<RunResult>)> = experiments.iter().map(|e| (*e, collect(args, e))).collect();
+    let results: Vec<(Experiment, Vec<RunResult>)> = experiments.iter().map(|e| (*e, collect(root, args.seeds, e))).collect();
+    let all: Vec<&RunResult> = results.iter().flat_map(|(_, r)| r.iter()).collect();
+    let seeds = args.seeds as usize;
+    let cell = |s: Option<Stat>, decimals: usize| match s {
+        Some(st) if st.n < seeds => format!("{} (n = {})", Stat::fmt(s, decimals), st.n),
+        _ => Stat::fmt(s, decimals),
+    };
     let mut page = String::new();
-    let total_runs: usize = results.iter().map(|(_, r)| r.len()).sum();
-    let total_s: f64 = results.iter().flat_map(|(_, r)| r.iter().map(|x| x.wall_s)).sum();
-    let cap = args.minutes().map_or("the presets' own schedules (the paper's episode counts, stopping early on the paper-quality criteria)".to_owned(), |m| format!("each training run capped at {m} minutes (the paper trains 5,000–20,000 episodes over 66–204 hours)"));
-    let _ = writeln!(page, "# The paper's experiments, reproduced by `mapless reproduce --{}`\n", args.mode());
-    let overrides = if args.set.is_empty() { String::new() } else { format!(" The presets ran with {}.", args.set.iter().map(|s| format!("`--set {s}`")).collect::<Vec<_>>().join(", ")) };
+    let total_s: f64 = all.iter().map(|x| x.wall_s).sum();
+    // What the runs did, read from their own configs and summaries (not from this command's flags).
+    let caps = distinct(all.iter().map(|r| match (r.minutes_cap, r.episodes_cap) {
+        (Some(m), _) => format!("capped at {m} minutes"),
+        (None, Some(k)) => format!("up to {k} episodes (the preset's schedule)"),
+        (None, None) => "uncapped".to_owned(),
+    }));
+    let ratios = distinct(all.iter().map(|r| r.steps_per_update().map_or("no update-to-data ratio".to_owned(), |k| format!("one update per {k} env steps"))));
+    let eval_eps = distinct(all.iter().filter_map(|r| r.eval.as_ref().map(|e| e.episodes.len().to_string())));
+    let windows = distinct(all.iter().map(|r| r.window.to_string()));
+    let overrides = if args.set.is_empty() { String::new() } else { format!(" with {}", args.set.iter().map(|s| format!("`--set {s}`")).collect::<Vec<_>>().join(" ")) };
+    let _ = writeln!(page, "# The paper's experiments, reproduced by `mapless reproduce`\n");
     let _ = writeln!(
         page,
-        "Written by `mapless reproduce --{} --seeds {} --out {}` from {total_runs} runs in `{}` ({:.0} minutes of training in all); {cap}. \
+        "Written by `mapless reproduce --{}{overrides} --seeds {}` from {} finished runs in `{}` ({:.0} minutes of training in all). \
+         The runs: training {caps} (the paper trains 5,000–20,000 episodes over 66–204 hours); {ratios} (the paper: one per step). \
          Every number below comes from those runs; the paper's are from its Tables II–V (`sim/src/paper.rs`). \
-         Ours are mean ± standard deviation over the seeds (n per cell in `results.json`). \
-         The paper reports one post-training trajectory per agent; our EQS and EES are the means of {} deterministic evaluation episodes per seed \
-         (the final evaluation of `mapless train` on the training map; {ENV3_EPISODES} episodes of at most {} steps on env3). \
-         EQS is read as docs/simulator.md settles it (linear inner sum, 2.5 m rings, 2 m cells; [eqs-reading.md](eqs-reading.md)).{overrides}\n",
+         Ours are mean ± standard deviation over the seeds that finished (cells with fewer are marked n). \
+         The paper reports one post-training trajectory per agent; our EQS and EES are the means of {eval_eps} deterministic evaluation episodes per run \
+         (the final evaluation of `mapless train` on the training map), and of {ENV3_EPISODES} episodes of at most {} steps on env3. \
+         Moving averages are of order {windows}. \
+         EQS is read as docs/simulator.md settles it (linear inner sum, 2.5 m rings, 2 m cells; `mapless analyze eqs`, docs/results/eqs-reading.md).\n",
         args.mode(),
         args.seeds,
-        args.out.display(),
-        args.runs.display(),
+        all.len(),
+        root.display(),
         total_s / 60.0,
-        10,
         paper::ENV3_EVAL_STEPS
     );
 
     // Table II.
     let _ = writeln!(page, "## Table II — training time\n");
-    let _ = writeln!(page, "| experiment | paper (hours, MATLAB, i7-11700K + RTX 3070 Ti) | ours: wall time per run | episodes | env steps | updates | stopped because (seed 1) |");
+    let _ = writeln!(page, "| experiment | paper (hours, MATLAB, i7-11700K + RTX 3070 Ti) | ours: wall time per run | episodes | env steps | updates | stopped because (first seed) |");
     let _ = writeln!(page, "|---|---|---|---|---|---|---|");
     for (e, runs) in &results {
         let paper_h = paper::TABLE_III.iter().chain(paper::TABLE_IV.iter()).find(|t| t.world == e.world && t.algorithm == e.algorithm).map_or("–".to_owned(), |t| format!("{:.1}", t.hours));
-        let why = runs.first().map_or("–".to_owned(), |r| r.stopped_because.clone());
+        let why = runs.first().map_or("–".to_owned(), |r| format!("seed {}: {}", r.seed, r.stopped_because));
         let _ = writeln!(
             page,
             "| {} | {paper_h} | {} min | {} | {} | {} | {why} |",
             e.preset,
-            Stat::fmt(stat(runs, |r| Some(r.wall_s / 60.0)), 1),
-            Stat::fmt(stat(runs, |r| Some(r.episodes as f64)), 0),
-            Stat::fmt(stat(runs, |r| Some(r.env_steps as f64)), 0),
-            Stat::fmt(stat(runs, |r| Some(r.updates as f64)), 0)
+            cell(stat(runs, |r| Some(r.wall_s / 60.0)), 1),
+            cell(stat(runs, |r| Some(r.episodes as f64)), 0),
+            cell(stat(runs, |r| Some(r.env_steps as f64)), 0),
+            cell(stat(runs, |r| Some(r.updates as f64)), 0)
         );
     }
 
@@ -478,8 +571,8 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
             continue;
         }
         let _ = writeln!(page, "\n## Table {table} — training on {world}\n");
-        let _ = writeln!(page, "Paper / ours. Average return and steps are the order-50 moving averages at the end of training; the convergence episode is ours by the rule of `protocol::convergence_episode` (the paper states none).\n");
-        let _ = writeln!(page, "| algorithm | convergence episode | average return | average steps | EQS | EES | eval collisions (of 10 per seed) |");
+        let _ = writeln!(page, "Paper / ours. Average return and steps are the moving averages at the end of training; the convergence episode is ours by the rule of `protocol::convergence_episode` (the paper states none).\n");
+        let _ = writeln!(page, "| algorithm | convergence episode | average return | average steps | EQS | EES | eval collisions per run (of {eval_eps}) |");
         let _ = writeln!(page, "|---|---|---|---|---|---|---|");
         for t in rows {
             let Some((_, runs)) = results.iter().find(|(e, _)| e.world == world && e.algorithm == t.algorithm) else { continue };
@@ -488,16 +581,16 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
                 "| {} | {} / {} | {:.0} / {} | {:.0} / {} | {:.0} / {} | {:.2} / {} | {} |",
                 t.algorithm.to_uppercase(),
                 t.convergence_episode.map_or("–".to_owned(), |c| c.to_string()),
-                Stat::fmt(stat(runs, |r| r.convergence_episode.map(|c| c as f64)), 0),
+                cell(stat(runs, |r| r.convergence_episode.map(|c| c as f64)), 0),
                 t.average_return,
-                Stat::fmt(stat(runs, |r| Some(r.average_return)), 1),
+                cell(stat(runs, |r| Some(r.average_return)), 1),
                 t.average_steps,
-                Stat::fmt(stat(runs, |r| Some(r.average_steps)), 0),
+                cell(stat(runs, |r| Some(r.average_steps)), 0),
                 t.eqs,
-                Stat::fmt(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_eqs)), 1),
+                cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_eqs)), 1),
                 t.ees,
-                Stat::fmt(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_ees)), 2),
-                Stat::fmt(stat(runs, |r| r.eval.as_ref().map(|e| f64::from(e.collisions))), 1),
+                cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_ees)), 2),
+                cell(stat(runs, |r| r.eval.as_ref().map(|e| f64::from(e.collisions))), 1),
             );
         }
     }
@@ -506,7 +599,7 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
     if results.iter().any(|(e, r)| e.on_env3 && r.iter().any(|x| x.env3.is_some())) {
     let _ = writeln!(page, "\n## Table V — the six agents on env3 (never trained on)\n");
     let _ = writeln!(page, "Paper / ours: steps before a collision or the {}-step limit, EQS, EES; collisions of our {ENV3_EPISODES} episodes per seed.\n", paper::ENV3_EVAL_STEPS);
-    let _ = writeln!(page, "| agent | steps | EQS | EES | collisions (of {ENV3_EPISODES} per seed) |");
+    let _ = writeln!(page, "| agent | steps | EQS | EES | collisions per run (of {ENV3_EPISODES}) |");
     let _ = writeln!(page, "|---|---|---|---|---|");
     for t in &paper::TABLE_V {
         let Some((_, runs)) = results.iter().find(|(e, _)| e.world == t.trained_on && e.algorithm == t.algorithm) else { continue };
@@ -517,12 +610,12 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
             t.algorithm.to_uppercase(),
             t.trained_on,
             t.steps,
-            Stat::fmt(env3(|e| e.mean_steps), 0),
+            cell(env3(|e| e.mean_steps), 0),
             t.eqs,
-            Stat::fmt(env3(|e| e.mean_eqs), 1),
+            cell(env3(|e| e.mean_eqs), 1),
             t.ees,
-            Stat::fmt(env3(|e| e.mean_ees), 2),
-            Stat::fmt(env3(|e| f64::from(e.collisions)), 1),
+            cell(env3(|e| e.mean_ees), 2),
+            cell(env3(|e| f64::from(e.collisions)), 1),
         );
     }
     }
@@ -531,9 +624,9 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
     if let Some((_, runs)) = results.iter().find(|(e, _)| e.world == "outdoor20") {
         let _ = writeln!(page, "\n## Outdoor20 — SAC with the search-and-rescue reward (eq. 2)\n");
         let _ = writeln!(page, "| | paper | ours |\n|---|---|---|");
-        let _ = writeln!(page, "| average return (order 50, end of training) | {:.0} | {} |", paper::OUTDOOR_SAC_RETURN, Stat::fmt(stat(runs, |r| Some(r.average_return)), 1));
-        let _ = writeln!(page, "| evaluation: time in shade per episode (s) | – | {} |", Stat::fmt(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_shaded_time_s)), 1));
-        let _ = writeln!(page, "| evaluation: steps | – | {} |", Stat::fmt(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_steps)), 0));
+        let _ = writeln!(page, "| average return (order 50, end of training) | {:.0} | {} |", paper::OUTDOOR_SAC_RETURN, cell(stat(runs, |r| Some(r.average_return)), 1));
+        let _ = writeln!(page, "| evaluation: time in shade per episode (s) | – | {} |", cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_shaded_time_s)), 1));
+        let _ = writeln!(page, "| evaluation: steps | – | {} |", cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_steps)), 0));
     }
 
     // Ranking.
@@ -559,10 +652,10 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
 
     // Where we differ and why.
     let _ = writeln!(page, "\n## Where we match, where we differ, and why\n");
-    let _ = writeln!(page, "- **Schedules.** {}", if args.full { "`--full` follows the presets' schedules: the paper's episode counts, stopping early when the paper-quality criteria (order-50 averages and an evaluation at the paper's EQS/EES) hold." } else { "`--quick` caps every run at a few minutes where the paper trains for days: a run that has not met its preset's criteria by then is compared as it stands, so low returns and short episodes here are schedules cut short, not a verdict on the algorithm. `--full` runs the paper's schedules." });
-    let _ = writeln!(page, "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block, so the per-step return of eq. (1) is bounded as the paper's Table III implies.");
-    let _ = writeln!(page, "- **Inferred parameters.** Where the paper is silent (network width, exploration noise, the update-to-data ratio, the EQS reading) the presets say what we chose and why; the update-to-data ratio is one update per 4 env steps (the paper: every step).");
-    let _ = writeln!(page, "- **Evaluation.** The paper scores one trajectory per agent; ours average {} deterministic episodes per seed from random starts, so a lucky or unlucky start weighs less.", 10);
+    let _ = writeln!(page, "- **Schedules.** {}", if all.iter().all(|r| r.minutes_cap.is_none()) { "The runs followed the presets' schedules: the paper's episode counts, stopping early when the paper-quality criteria (order-50 averages and an evaluation at the paper's EQS/EES) hold." } else { "These runs were capped at minutes where the paper trains for days: a run that has not met its preset's criteria by then is compared as it stands, so low returns and short episodes here are schedules cut short, not a verdict on the algorithm. `--full` runs the paper's schedules." });
+    let _ = writeln!(page, "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block, so the per-step return of eq. (1) is bounded as the paper's Table III implies. env2 and env3 are not yet held to Tables IV–V that way: `mapless maps stats env2` finds open lanes where every beam reads 12 m, so env2's per-step returns and EQS can run above the paper's.");
+    let _ = writeln!(page, "- **Inferred parameters.** Where the paper is silent (network width, exploration noise, the update-to-data ratio, the EQS reading) the presets say what we chose and why; these runs took {ratios} (the paper: every step).");
+    let _ = writeln!(page, "- **Evaluation.** The paper scores one trajectory per agent; ours average {eval_eps} deterministic episodes per run from random starts, so a lucky or unlucky start weighs less.");
 
     // Row by row, as the data says.
     let verdict = |ours: Option<Stat>, theirs: f64, decimals: usize| -> String {
@@ -599,9 +692,18 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
 
     // Figures.
     let _ = writeln!(page, "\n## Figures\n");
+    // Pictures of an earlier page go; those of these runs are copied afresh.
+    if let Ok(dir) = fs::read_dir(&args.out) {
+        for f in dir.flatten() {
+            let name = f.file_name().to_string_lossy().into_owned();
+            if name.starts_with("fig") && name.ends_with(".png") {
+                let _ = fs::remove_file(f.path());
+            }
+        }
+    }
     let mut all_figs = Vec::new();
     for (e, runs) in &results {
-        all_figs.extend(figures(args, e, runs)?);
+        all_figs.extend(figures(args, root, e, runs)?);
     }
     let _ = writeln!(page, "The paper's numbering: Figs. 8–9 env1 curves, 10 env1 trajectories, 11–12 env2 curves, 13 env2 trajectories, 14 env3, 15 outdoor return curve, 16 outdoor trajectory (shaded regions marked).\n");
     for (name, caption) in &all_figs {
@@ -609,7 +711,7 @@ fn report(args: &ReproduceArgs, experiments: &[Experiment]) -> Result<PathBuf> {
     }
 
     let json: Vec<serde_json::Value> = results.iter().map(|(e, r)| serde_json::json!({"preset": e.preset, "world": e.world, "algorithm": e.algorithm, "runs": r})).collect();
-    fs::write(args.out.join("results.json"), serde_json::to_string_pretty(&serde_json::json!({"mode": args.mode(), "seeds": args.seeds, "minutes_per_run": args.minutes(), "experiments": json}))?)?;
+    fs::write(args.out.join("results.json"), serde_json::to_string_pretty(&serde_json::json!({"command_mode": args.mode(), "seeds": args.seeds, "runs": root.display().to_string(), "experiments": json}))?)?;
     let path = args.out.join("README.md");
     fs::write(&path, page).with_context(|| format!("writing {}", path.display()))?;
     Ok(path)
@@ -627,6 +729,33 @@ mod tests {
         assert_eq!(Stat::of(&[]), None);
         assert_eq!(Stat::fmt(Stat::of(&[5.0]), 1), "5.0");
         assert_eq!(Stat::fmt(Stat::of(&[1.0, 3.0]), 1), "2.0 ± 1.4");
+    }
+
+    fn summary_json(stopped_because: &str, criteria_met: bool) -> serde_json::Value {
+        serde_json::json!({
+            "run": "r", "preset": "env1-sac", "stopped_because": stopped_because, "wall_s": 1.0, "episodes": 0,
+            "env_steps": 0, "updates": 0, "weights_version": 0,
+            // No episode yet: NaN averages, which serde_json writes as null.
+            "average_return": null, "average_steps": null, "window": 50,
+            "criteria_met_at": if criteria_met { serde_json::json!({"wall_s": 1.0, "episode": 1, "env_steps": 1, "updates": 1}) } else { serde_json::Value::Null },
+            "criteria_evaluation": null, "convergence_episode": null, "actor_restarts": 0, "steady": null, "evaluation": null
+        })
+    }
+
+    #[test]
+    fn a_run_is_finished_resumed_or_refused_by_what_its_summary_says() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |v: serde_json::Value| fs::write(dir.path().join("summary.json"), v.to_string()).unwrap();
+        assert!(finished_summary(dir.path()).unwrap().is_none(), "no summary: not finished");
+        write(summary_json("2 minutes", false));
+        let s = finished_summary(dir.path()).unwrap().expect("a summary with null averages reads back");
+        assert!(s.average_return.is_nan());
+        write(summary_json("interrupted (Ctrl-C or SIGTERM)", false));
+        assert!(finished_summary(dir.path()).unwrap().is_none(), "interrupted: resumed");
+        write(summary_json("interrupted (Ctrl-C or SIGTERM); meanwhile the criteria were met", true));
+        assert!(finished_summary(dir.path()).unwrap().is_some(), "met its criteria before the interruption: finished");
+        fs::write(dir.path().join("summary.json"), "{ torn").unwrap();
+        assert!(finished_summary(dir.path()).is_err(), "an unreadable summary is an error, not a resume");
     }
 
     #[test]

@@ -280,13 +280,14 @@ impl TrainConfig {
         self.env.validate()?;
         self.replay.obs_dim = self.env.obs_dim();
         self.replay.act_dim = 2;
+        // An actor sends up to `batch_rows` + one row per vehicle at a time: the table takes
+        // at least that (more vehicles than the default covers raise it, and the rate
+        // limiter's check below then says if `error_buffer` must grow with it).
+        self.replay.max_batch_rows = self.replay.max_batch_rows.max(self.actors.batch_rows + self.actors.vehicles);
         self.replay.validate()?;
         self.learner.validate()?;
         if self.actors.count == 0 || self.actors.vehicles == 0 || self.actors.batch_rows == 0 {
             bail!("actors.count, actors.vehicles and actors.batch_rows must be >= 1");
-        }
-        if self.actors.batch_rows + self.actors.vehicles > self.replay.max_batch_rows {
-            bail!("actors.batch_rows + actors.vehicles ({}) must not exceed replay.max_batch_rows ({})", self.actors.batch_rows + self.actors.vehicles, self.replay.max_batch_rows);
         }
         if self.stop.window == 0 {
             bail!("stop.window must be >= 1");
@@ -354,6 +355,7 @@ pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
 }
 
 /// A built-in preset (or a preset file) as a `TrainConfig`, unresolved.
+#[cfg(test)]
 pub fn preset_config(preset: &str) -> Result<TrainConfig> {
     parse_config(serde_yaml::from_str(&preset_text(preset)?).context("preset YAML")?)
 }
@@ -752,7 +754,10 @@ pub struct Summary {
     pub env_steps: u64,
     pub updates: u64,
     pub weights_version: u64,
+    /// NaN (written as null) before the first episode.
+    #[serde(deserialize_with = "nan_if_null")]
     pub average_return: f64,
+    #[serde(deserialize_with = "nan_if_null")]
     pub average_steps: f64,
     pub window: usize,
     pub criteria_met_at: Option<Milestone>,
@@ -765,6 +770,19 @@ pub struct Summary {
     /// Throughput after start-up (from 20 s, or a third of a time-limited run, to the stop).
     pub steady: Option<Rates>,
     pub evaluation: Option<eval::EvalSummary>,
+}
+
+/// serde_json writes a non-finite f64 as null; read it back as NaN.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// Writes `path` whole or not at all (a temporary file beside it, then a rename), so a run
+/// killed mid-write leaves the old file, never a torn one.
+pub fn write_atomic(path: &Path, contents: &str) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    fs::write(&tmp, contents).with_context(|| format!("writing {}", tmp.display()))?;
+    fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
 }
 
 /// How `Summary::stopped_because` begins for a run that Ctrl-C or SIGTERM stopped.
@@ -813,7 +831,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     }
     let logs = run.join("logs");
     fs::create_dir_all(&logs)?;
-    fs::write(run.join("config.yaml"), serde_yaml::to_string(&cfg)?)?;
+    write_atomic(&run.join("config.yaml"), &serde_yaml::to_string(&cfg)?)?;
     let run_name = run.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into());
     mapless_replay::logging::identify(&[("run", &run_name), ("role", "supervisor")]);
     let run_abs = fs::canonicalize(&run)?;
@@ -1273,7 +1291,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         steady,
         evaluation,
     };
-    fs::write(run.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    write_atomic(&run.join("summary.json"), &serde_json::to_string_pretty(&summary)?)?;
     eprintln!(
         "done: {} episodes, {} env steps, {} updates in {:.0} s; avg{w} return {:.1}, steps {:.0}; convergence episode {}",
         summary.episodes,
@@ -1446,6 +1464,12 @@ mod tests {
         assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(128.0));
         assert_eq!(cfg.replay.rate_limiter.error_buffer, default_table().rate_limiter.error_buffer);
         assert_eq!((cfg.driver.publish_every, cfg.driver.checkpoint_every), (10, default_driver().checkpoint_every));
+        // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=200"])).unwrap();
+        assert_eq!(cfg.replay.max_batch_rows, 64 + 200);
+        // ... and with the paper's ratio too, the limiter's slack must then grow: a clear error.
+        let err = load_config(&train_args("env1-sac", &["actors.vehicles=200", "replay.rate_limiter.samples_per_insert=128"])).unwrap_err();
+        assert!(format!("{err:#}").contains("error_buffer"), "{err:#}");
     }
 
     #[test]

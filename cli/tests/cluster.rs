@@ -269,7 +269,7 @@ fn reproduce_trains_evaluates_on_env3_resumes_and_writes_the_page() {
         let cfg: serde_yaml::Value = serde_yaml::from_str(&std::fs::read_to_string(run.join("config.yaml")).unwrap()).unwrap();
         assert_eq!(cfg["seed"].as_u64(), Some(k), "each seed is its own run");
         assert_eq!(cfg["learner"]["hidden_width"].as_u64(), Some(16), "--set reaches the runs");
-        let e3 = json(&run.join("eval-env3").join("eval.json")).expect("an env3 evaluation");
+        let e3 = json(&run.join("reproduce-env3").join("eval.json")).expect("an env3 evaluation");
         assert_eq!(e3["map"], "env3");
         let eps = e3["episodes"].as_array().unwrap();
         assert_eq!(eps.len(), 10);
@@ -285,6 +285,8 @@ fn reproduce_trains_evaluates_on_env3_resumes_and_writes_the_page() {
         assert!(out.join(f).exists(), "{f}");
     }
     assert!(reproduce().contains("0 to do (2 done)"), "a second call trains nothing");
+    let o = Command::new(mapless()).args(["reproduce", "--report-only", "--set", "seed=3"]).arg("--runs").arg(&runs).arg("--out").arg(&out).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--seeds"), "a seed override would make every seed the same run");
 
     // A run that was interrupted is resumed (its log gets a second session).
     let run2 = runs.join("env1-td3").join("seed-2");
