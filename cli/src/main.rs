@@ -312,8 +312,7 @@ fn run(cli: Cli) -> Result<()> {
 }
 
 fn eval_cmd(a: &EvalArgs) -> Result<()> {
-    let text = std::fs::read_to_string(a.run.join("config.yaml")).with_context(|| format!("{} is not a run folder (no config.yaml)", a.run.display()))?;
-    let cfg: train::TrainConfig = serde_yaml::from_str(&text)?;
+    let cfg = train::read_run_config(&a.run)?;
     let mut env = cfg.env.clone();
     if let Some(m) = a.max_steps {
         env.episode.max_steps = m;

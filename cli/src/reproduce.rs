@@ -34,7 +34,7 @@ use mapless_sim::paper;
 use serde::{Deserialize, Serialize};
 
 use crate::eval::{self, EvalSummary};
-use crate::train::{INTERRUPTED, Summary, TrainConfig};
+use crate::train::{INTERRUPTED, Summary, read_run_config};
 
 /// Minutes of training per experiment under `--quick`: 7 experiments × 3 seeds × (2 min + start,
 /// final evaluation and env3 evaluation) fit in an hour on 2 cores, one experiment at a time.
@@ -349,8 +349,7 @@ fn run_one(exe: &Path, job: &Job, minutes: Option<f64>, set: &[String], children
         let e3 = match read_env3(&job.env3_dir()) {
             Some(e) => e,
             None => {
-                let cfg: TrainConfig = serde_yaml::from_str(&fs::read_to_string(job.dir.join("config.yaml"))?).context("the run's config.yaml")?;
-                let mut env = cfg.env.clone();
+                let mut env = read_run_config(&job.dir)?.env;
                 env.episode.max_steps = paper::ENV3_EVAL_STEPS;
                 eval::evaluate(&job.dir.join("policy.safetensors"), "env3", &env, ENV3_EPISODES, ENV3_SEED, Some(&job.env3_dir()))?
             }
@@ -393,28 +392,17 @@ impl Stat {
     }
 }
 
-/// One run as the page uses it.
-#[derive(Clone, Debug, Serialize)]
+/// One run as the page uses it: its summary, what its `config.yaml` says of its caps and its
+/// update-to-data ratio, and its env3 evaluation.
+#[derive(Debug, Serialize)]
 struct RunResult {
-    preset: String,
     seed: u32,
-    stopped_because: String,
-    wall_s: f64,
-    episodes: u64,
-    env_steps: u64,
-    updates: u64,
-    average_return: f64,
-    average_steps: f64,
-    convergence_episode: Option<u64>,
-    criteria_met_at_s: Option<f64>,
-    /// Order of the moving averages.
-    window: usize,
-    /// From the run's `config.yaml`: its minute and episode caps, and its update-to-data ratio.
+    #[serde(flatten)]
+    summary: Summary,
     minutes_cap: Option<f64>,
     episodes_cap: Option<u64>,
     samples_per_insert: Option<f64>,
     batch_size: usize,
-    eval: Option<EvalSummary>,
     env3: Option<EvalSummary>,
 }
 
@@ -429,26 +417,15 @@ fn collect(runs: &Path, seeds: u32, e: &Experiment) -> Vec<RunResult> {
     (1..=seeds)
         .filter_map(|k| {
             let dir = runs.join(e.preset).join(format!("seed-{k}"));
-            let s = finished_summary(&dir).ok()??;
-            let cfg: TrainConfig = serde_yaml::from_str(&fs::read_to_string(dir.join("config.yaml")).ok()?).ok()?;
+            let summary = finished_summary(&dir).ok()??;
+            let cfg = read_run_config(&dir).ok()?;
             Some(RunResult {
-                preset: e.preset.into(),
                 seed: k,
-                stopped_because: s.stopped_because.clone(),
-                wall_s: s.wall_s,
-                episodes: s.episodes,
-                env_steps: s.env_steps,
-                updates: s.updates,
-                average_return: s.average_return,
-                average_steps: s.average_steps,
-                convergence_episode: s.convergence_episode,
-                criteria_met_at_s: s.criteria_met_at.as_ref().map(|m| m.wall_s),
-                window: s.window,
+                summary,
                 minutes_cap: cfg.stop.minutes,
                 episodes_cap: cfg.stop.episodes,
                 samples_per_insert: cfg.replay.rate_limiter.samples_per_insert,
                 batch_size: cfg.learner.batch_size,
-                eval: s.evaluation,
                 env3: read_env3(&env3_dir(&dir)),
             })
         })
@@ -496,8 +473,8 @@ fn figures(args: &ReproduceArgs, root: &Path, e: &Experiment, runs: &[RunResult]
         Ok(())
     };
     let alg = e.algorithm.to_uppercase();
-    copy(dir.join("curves.png"), format!("{curves}-{}.png", e.preset), format!("{alg} on {}: return and steps per episode with their order-{} averages (seed {})", e.world, first.window, first.seed))?;
-    if first.eval.is_some() {
+    copy(dir.join("curves.png"), format!("{curves}-{}.png", e.preset), format!("{alg} on {}: return and steps per episode with their order-{} averages (seed {})", e.world, first.summary.window, first.seed))?;
+    if first.summary.evaluation.is_some() {
         copy(dir.join("eval").join("episode-1.png"), format!("{traj}-{}.png", e.preset), format!("{alg} on {}: evaluation trajectory 1 of the final policy (seed {})", e.world, first.seed))?;
     }
     if first.env3.is_some() {
@@ -517,7 +494,7 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
         _ => Stat::fmt(s, decimals),
     };
     let mut page = String::new();
-    let total_s: f64 = all.iter().map(|x| x.wall_s).sum();
+    let total_s: f64 = all.iter().map(|x| x.summary.wall_s).sum();
     // What the runs did, read from their own configs and summaries (not from this command's flags).
     let caps = distinct(all.iter().map(|r| match (r.minutes_cap, r.episodes_cap) {
         (Some(m), _) => format!("capped at {m} minutes"),
@@ -525,8 +502,8 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
         (None, None) => "uncapped".to_owned(),
     }));
     let ratios = distinct(all.iter().map(|r| r.steps_per_update().map_or("no update-to-data ratio".to_owned(), |k| format!("one update per {k} env steps"))));
-    let eval_eps = distinct(all.iter().filter_map(|r| r.eval.as_ref().map(|e| e.episodes.len().to_string())));
-    let windows = distinct(all.iter().map(|r| r.window.to_string()));
+    let eval_eps = distinct(all.iter().filter_map(|r| r.summary.evaluation.as_ref().map(|e| e.episodes.len().to_string())));
+    let windows = distinct(all.iter().map(|r| r.summary.window.to_string()));
     let overrides = if args.set.is_empty() { String::new() } else { format!(" with {}", args.set.iter().map(|s| format!("`--set {s}`")).collect::<Vec<_>>().join(" ")) };
     let _ = writeln!(page, "# The paper's experiments, reproduced by `mapless reproduce`\n");
     let _ = writeln!(
@@ -553,15 +530,15 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     let _ = writeln!(page, "|---|---|---|---|---|---|---|");
     for (e, runs) in &results {
         let paper_h = paper::TABLE_III.iter().chain(paper::TABLE_IV.iter()).find(|t| t.world == e.world && t.algorithm == e.algorithm).map_or("–".to_owned(), |t| format!("{:.1}", t.hours));
-        let why = runs.first().map_or("–".to_owned(), |r| format!("seed {}: {}", r.seed, r.stopped_because));
+        let why = runs.first().map_or("–".to_owned(), |r| format!("seed {}: {}", r.seed, r.summary.stopped_because));
         let _ = writeln!(
             page,
             "| {} | {paper_h} | {} min | {} | {} | {} | {why} |",
             e.preset,
-            cell(stat(runs, |r| Some(r.wall_s / 60.0)), 1),
-            cell(stat(runs, |r| Some(r.episodes as f64)), 0),
-            cell(stat(runs, |r| Some(r.env_steps as f64)), 0),
-            cell(stat(runs, |r| Some(r.updates as f64)), 0)
+            cell(stat(runs, |r| Some(r.summary.wall_s / 60.0)), 1),
+            cell(stat(runs, |r| Some(r.summary.episodes as f64)), 0),
+            cell(stat(runs, |r| Some(r.summary.env_steps as f64)), 0),
+            cell(stat(runs, |r| Some(r.summary.updates as f64)), 0)
         );
     }
 
@@ -581,16 +558,16 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
                 "| {} | {} / {} | {:.0} / {} | {:.0} / {} | {:.0} / {} | {:.2} / {} | {} |",
                 t.algorithm.to_uppercase(),
                 t.convergence_episode.map_or("–".to_owned(), |c| c.to_string()),
-                cell(stat(runs, |r| r.convergence_episode.map(|c| c as f64)), 0),
+                cell(stat(runs, |r| r.summary.convergence_episode.map(|c| c as f64)), 0),
                 t.average_return,
-                cell(stat(runs, |r| Some(r.average_return)), 1),
+                cell(stat(runs, |r| Some(r.summary.average_return)), 1),
                 t.average_steps,
-                cell(stat(runs, |r| Some(r.average_steps)), 0),
+                cell(stat(runs, |r| Some(r.summary.average_steps)), 0),
                 t.eqs,
-                cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_eqs)), 1),
+                cell(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| e.mean_eqs)), 1),
                 t.ees,
-                cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_ees)), 2),
-                cell(stat(runs, |r| r.eval.as_ref().map(|e| f64::from(e.collisions))), 1),
+                cell(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| e.mean_ees)), 2),
+                cell(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| f64::from(e.collisions))), 1),
             );
         }
     }
@@ -624,9 +601,9 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     if let Some((_, runs)) = results.iter().find(|(e, _)| e.world == "outdoor20") {
         let _ = writeln!(page, "\n## Outdoor20 — SAC with the search-and-rescue reward (eq. 2)\n");
         let _ = writeln!(page, "| | paper | ours |\n|---|---|---|");
-        let _ = writeln!(page, "| average return (order 50, end of training) | {:.0} | {} |", paper::OUTDOOR_SAC_RETURN, cell(stat(runs, |r| Some(r.average_return)), 1));
-        let _ = writeln!(page, "| evaluation: time in shade per episode (s) | – | {} |", cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_shaded_time_s)), 1));
-        let _ = writeln!(page, "| evaluation: steps | – | {} |", cell(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_steps)), 0));
+        let _ = writeln!(page, "| average return (order 50, end of training) | {:.0} | {} |", paper::OUTDOOR_SAC_RETURN, cell(stat(runs, |r| Some(r.summary.average_return)), 1));
+        let _ = writeln!(page, "| evaluation: time in shade per episode (s) | – | {} |", cell(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| e.mean_shaded_time_s)), 1));
+        let _ = writeln!(page, "| evaluation: steps | – | {} |", cell(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| e.mean_steps)), 0));
     }
 
     // Ranking.
@@ -637,7 +614,7 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
         p.iter().map(|(a, v)| format!("{a} ({v:.1})")).collect::<Vec<_>>().join(" > ")
     };
     for (world, rows) in [("env1", &paper::TABLE_III[..]), ("env2", &paper::TABLE_IV[..])] {
-        let ours: Vec<(String, f64)> = results.iter().filter(|(e, _)| e.world == world).filter_map(|(e, r)| stat(r, |x| x.eval.as_ref().map(|v| v.mean_eqs)).map(|s| (agent_name(e.algorithm, None), s.mean))).collect();
+        let ours: Vec<(String, f64)> = results.iter().filter(|(e, _)| e.world == world).filter_map(|(e, r)| stat(r, |x| x.summary.evaluation.as_ref().map(|v| v.mean_eqs)).map(|s| (agent_name(e.algorithm, None), s.mean))).collect();
         if ours.is_empty() {
             continue;
         }
@@ -667,16 +644,16 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     let _ = writeln!(page, "\nRow by row (our mean over seeds against the paper's figure):\n");
     for t in paper::TABLE_III.iter().chain(paper::TABLE_IV.iter()) {
         let Some((_, runs)) = results.iter().find(|(e, r)| e.world == t.world && e.algorithm == t.algorithm && !r.is_empty()) else { continue };
-        let collisions: f64 = runs.iter().filter_map(|r| r.eval.as_ref().map(|e| f64::from(e.collisions))).sum();
-        let episodes: usize = runs.iter().filter_map(|r| r.eval.as_ref().map(|e| e.episodes.len())).sum();
+        let collisions: f64 = runs.iter().filter_map(|r| r.summary.evaluation.as_ref().map(|e| f64::from(e.collisions))).sum();
+        let episodes: usize = runs.iter().filter_map(|r| r.summary.evaluation.as_ref().map(|e| e.episodes.len())).sum();
         let _ = writeln!(
             page,
             "- {} on {}: EQS {}, EES {}, average steps {}; {collisions:.0} collisions in {episodes} evaluation episodes.",
             agent_name(t.algorithm, None),
             t.world,
-            verdict(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_eqs)), t.eqs, 1),
-            verdict(stat(runs, |r| r.eval.as_ref().map(|e| e.mean_ees)), t.ees, 2),
-            verdict(stat(runs, |r| Some(r.average_steps)), t.average_steps, 0),
+            verdict(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| e.mean_eqs)), t.eqs, 1),
+            verdict(stat(runs, |r| r.summary.evaluation.as_ref().map(|e| e.mean_ees)), t.ees, 2),
+            verdict(stat(runs, |r| Some(r.summary.average_steps)), t.average_steps, 0),
         );
     }
     for t in &paper::TABLE_V {

@@ -340,18 +340,19 @@ pub fn set_path(doc: &mut serde_yaml::Value, path: &str, value: &str) -> Result<
 /// under what the document says, field by field: a preset that sets
 /// `replay.rate_limiter.samples_per_insert` keeps every other field of `default_table()`, and
 /// `--set replay.capacity=…` changes one field instead of replacing the section.
-pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
-    if let Some(m) = doc.as_mapping_mut() {
-        for (key, defaults) in [("replay", serde_yaml::to_value(default_table())?), ("driver", serde_yaml::to_value(default_driver())?)] {
-            let key = serde_yaml::Value::String(key.into());
-            let merged = match m.remove(&key) {
-                Some(over) => overlay(defaults, over),
-                None => defaults,
-            };
-            m.insert(key, merged);
-        }
-    }
-    serde_yaml::from_value(doc).context("config")
+pub fn parse_config(doc: serde_yaml::Value) -> Result<TrainConfig> {
+    let mut defaults = serde_yaml::Mapping::new();
+    defaults.insert("replay".into(), serde_yaml::to_value(default_table())?);
+    defaults.insert("driver".into(), serde_yaml::to_value(default_driver())?);
+    serde_yaml::from_value(overlay(serde_yaml::Value::Mapping(defaults), doc)).context("config")
+}
+
+/// A run folder's resolved `config.yaml` (what `--resume`, `mapless eval` and `mapless
+/// reproduce` read back).
+pub fn read_run_config(run: &Path) -> Result<TrainConfig> {
+    let path = run.join("config.yaml");
+    let text = fs::read_to_string(&path).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
+    serde_yaml::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 
 /// A built-in preset (or a preset file) as a `TrainConfig`, unresolved.
@@ -1353,10 +1354,7 @@ fn write_pids(run: &Path, replay: &Proc, learner: &Proc, actors: &[Proc]) -> Res
         "actors": actors.iter().map(Proc::pid).collect::<Vec<_>>(),
         "restarts": total_restarts(replay, learner, actors),
     });
-    let tmp = run.join("pids.json.tmp");
-    fs::write(&tmp, serde_json::to_string(&v)?)?;
-    fs::rename(&tmp, run.join("pids.json"))?;
-    Ok(())
+    write_atomic(&run.join("pids.json"), &serde_json::to_string(&v)?)
 }
 
 fn draw_curves(run: &Path, cfg: &TrainConfig, rows: &[EpisodeRow]) {
