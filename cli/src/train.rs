@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use mapless_actor::run::{ActorConfig, ExplorationSettings, ReplayTarget};
 use mapless_actor::NoiseConfig;
-use mapless_learner::config::{AlgorithmKind, LearnerConfig};
+use mapless_learner::config::{AlgorithmKind, ExplorationNoise, LearnerConfig};
 use mapless_learner::driver::DriverConfig;
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ServerInfoRequest};
@@ -117,14 +117,13 @@ pub struct ActorsSettings {
     pub batch_rows: usize,
     /// Uniform random vehicle-steps at the start of each actor process.
     pub warmup_steps: u64,
-    /// Exploration noise; default by algorithm (DDPG: OU θ 0.15 σ 0.3, TD3: Gaussian σ 0.32,
-    /// SAC: none, it samples).
-    pub noise: Option<NoiseConfig>,
+    // Exploration noise has one home, the algorithm's section (`learner.ddpg.exploration`,
+    // `learner.td3.exploration`, with their sources); the actors are handed it. SAC samples.
 }
 
 impl Default for ActorsSettings {
     fn default() -> Self {
-        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, noise: None }
+        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500 }
     }
 }
 
@@ -210,13 +209,10 @@ pub struct TrainConfig {
     pub description: String,
     /// Built-in map name or path to a map YAML.
     pub map: String,
-    /// Reward preset (`exploration`: eq. 1, `search_and_rescue`: eq. 2); overrides `env.reward`.
-    #[serde(default)]
-    pub reward: Option<String>,
-    /// Step limit per episode; overrides `env.episode.max_steps`.
-    #[serde(default)]
-    pub max_steps: Option<u32>,
-    /// Simulator settings (vehicle, sensor, reward, episode, EQS grid).
+    /// Simulator settings (vehicle, sensor, reward, episode, EQS grid). The reward lives here
+    /// only (`env.reward`); a document may name a reward preset with the shorthand `reward:`
+    /// (`exploration`: eq. 1, `search_and_rescue`: eq. 2) and the step limit with
+    /// `max_steps:`, which [`expand_shorthands`] writes into `env` before any `--set`.
     #[serde(default)]
     pub env: EnvConfig,
     /// Algorithm and hyperparameters (paper Table I defaults).
@@ -254,6 +250,8 @@ fn default_driver() -> DriverConfig {
 
 fn default_table() -> TableConfig {
     let mut t = TableConfig::default();
+    // Set from the sensor by `resolve` (0: not stated).
+    (t.obs_dim, t.act_dim) = (0, 0);
     // One 128-row minibatch per 4 environment steps at most: the learner keeps pace with the
     // actors instead of the actors racing ahead on a stale policy.
     t.rate_limiter.samples_per_insert = Some(32.0);
@@ -269,17 +267,22 @@ fn default_table() -> TableConfig {
 }
 
 impl TrainConfig {
-    /// Applies `reward` and `max_steps` to `env`, sets the table's dims, checks everything.
+    /// Sets the table's dims from the sensor, checks everything.
     pub fn resolve(mut self) -> Result<TrainConfig> {
-        if let Some(r) = &self.reward {
-            self.env.reward = RewardConfig::preset(r)?;
-        }
-        if let Some(m) = self.max_steps {
-            self.env.episode.max_steps = m;
-        }
         self.env.validate()?;
-        self.replay.obs_dim = self.env.obs_dim();
-        self.replay.act_dim = 2;
+        // The table's row shape follows the sensor; a document may state it (a run's
+        // config.yaml does) but not contradict it.
+        for (name, set, derived) in [("replay.obs_dim", &mut self.replay.obs_dim, self.env.obs_dim()), ("replay.act_dim", &mut self.replay.act_dim, 2)] {
+            if *set != 0 && *set != derived {
+                bail!("{name} is {set}, but the sensor and the action give {derived}: it follows env.sensor, leave it out");
+            }
+            *set = derived;
+        }
+        // The run's seed seeds the learner too (and the actors, the replay's sampler).
+        if self.learner.seed != 0 && self.learner.seed != self.seed {
+            bail!("learner.seed is {}, the run's seed {}: the learner takes the run's `seed`, set that", self.learner.seed, self.seed);
+        }
+        self.learner.seed = self.seed;
         // An actor sends up to `batch_rows` + one row per vehicle at a time: the table takes
         // at least that (more vehicles than the default covers raise it, and the rate
         // limiter's check below then says if `error_buffer` must grow with it).
@@ -299,12 +302,18 @@ impl TrainConfig {
         Ok(self)
     }
 
+    /// The actors' exploration noise: the algorithm's own (`learner.{ddpg,td3}.exploration`);
+    /// none for SAC, which samples its policy.
     fn noise(&self) -> NoiseConfig {
-        self.actors.noise.unwrap_or(match self.learner.algorithm {
-            AlgorithmKind::Ddpg => NoiseConfig::DDPG_DEFAULT,
-            AlgorithmKind::Td3 => NoiseConfig::TD3_DEFAULT,
-            AlgorithmKind::Sac => NoiseConfig::None,
-        })
+        let e = match self.learner.algorithm {
+            AlgorithmKind::Ddpg => self.learner.ddpg.exploration,
+            AlgorithmKind::Td3 => self.learner.td3.exploration,
+            AlgorithmKind::Sac => return NoiseConfig::None,
+        };
+        match e {
+            ExplorationNoise::Gaussian { sigma } => NoiseConfig::Gaussian { sigma: sigma as f32 },
+            ExplorationNoise::OrnsteinUhlenbeck { theta, sigma, mean, dt } => NoiseConfig::OrnsteinUhlenbeck { theta: theta as f32, sigma: sigma as f32, mean: mean as f32, dt: dt as f32 },
+        }
     }
 }
 
@@ -340,11 +349,22 @@ pub fn set_path(doc: &mut serde_yaml::Value, path: &str, value: &str) -> Result<
 /// under what the document says, field by field: a preset that sets
 /// `replay.rate_limiter.samples_per_insert` keeps every other field of `default_table()`, and
 /// `--set replay.capacity=…` changes one field instead of replacing the section.
-pub fn parse_config(doc: serde_yaml::Value) -> Result<TrainConfig> {
+pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
+    expand_shorthands(&mut doc, false)?;
     let mut defaults = serde_yaml::Mapping::new();
-    defaults.insert("replay".into(), serde_yaml::to_value(default_table())?);
+    defaults.insert("env".into(), serde_yaml::to_value(EnvConfig::default())?);
+    defaults.insert("learner".into(), serde_yaml::to_value(LearnerConfig::default())?);
     defaults.insert("driver".into(), serde_yaml::to_value(default_driver())?);
-    serde_yaml::from_value(overlay(serde_yaml::Value::Mapping(defaults), doc)).context("config")
+    defaults.insert("replay".into(), serde_yaml::to_value(default_table())?);
+    defaults.insert("actors".into(), serde_yaml::to_value(ActorsSettings::default())?);
+    defaults.insert("stop".into(), serde_yaml::to_value(StopCriteria::default())?);
+    defaults.insert("eval".into(), serde_yaml::to_value(EvalSettings::default())?);
+    defaults.insert("threads".into(), serde_yaml::to_value(ThreadSettings::default())?);
+    // Errors name the field: `learner.ddpg.exploration.kind: unknown variant …`.
+    serde_path_to_error::deserialize(overlay(serde_yaml::Value::Mapping(defaults), doc)).map_err(|e| {
+        let path = e.path().to_string();
+        anyhow::anyhow!("config: {}{}", if path == "." { String::new() } else { format!("{path}: ") }, e.into_inner())
+    })
 }
 
 /// A run folder's resolved `config.yaml` (what `--resume`, `mapless eval` and `mapless
@@ -352,7 +372,45 @@ pub fn parse_config(doc: serde_yaml::Value) -> Result<TrainConfig> {
 pub fn read_run_config(run: &Path) -> Result<TrainConfig> {
     let path = run.join("config.yaml");
     let text = fs::read_to_string(&path).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
-    serde_yaml::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+    parse_config(serde_yaml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?).with_context(|| format!("reading {}", path.display()))
+}
+
+/// The document's shorthands written where their values live: `reward: NAME` becomes
+/// `env.reward` (the preset's weights, eq. 1 or 2) and `max_steps: N` becomes
+/// `env.episode.max_steps`. In a document (a preset, a run's config.yaml) fields it states under
+/// `env` win over its shorthand; a shorthand given by `--set` (`later_wins`) replaces what the
+/// document said, as any later `--set` does.
+fn expand_shorthands(doc: &mut serde_yaml::Value, later_wins: bool) -> Result<()> {
+    let Some(map) = doc.as_mapping_mut() else { return Ok(()) };
+    if let Some(r) = map.remove("reward").filter(|v| !v.is_null()) {
+        let name = r.as_str().with_context(|| format!("reward: expected a preset name (exploration, search_and_rescue), got {r:?}"))?;
+        let preset = serde_yaml::to_value(RewardConfig::preset(name)?)?;
+        let slot = section_entry(map, &["env", "reward"])?;
+        let stated = std::mem::take(slot);
+        *slot = if later_wins || stated.is_null() { preset } else { overlay(preset, stated) };
+    }
+    if let Some(m) = map.remove("max_steps").filter(|v| !v.is_null()) {
+        let slot = section_entry(map, &["env", "episode", "max_steps"])?;
+        if later_wins || slot.is_null() {
+            *slot = m;
+        }
+    }
+    Ok(())
+}
+
+/// The value at `path` under `map`, made (as null) where missing; every step but the last must
+/// be a section.
+fn section_entry<'a>(map: &'a mut serde_yaml::Mapping, path: &[&str]) -> Result<&'a mut serde_yaml::Value> {
+    let (last, parents) = path.split_last().expect("a path");
+    let mut cur = map;
+    for (i, p) in parents.iter().enumerate() {
+        let v = cur.entry((*p).into()).or_insert(serde_yaml::Value::Null);
+        if v.is_null() {
+            *v = serde_yaml::Value::Mapping(Default::default());
+        }
+        cur = v.as_mapping_mut().with_context(|| format!("`{}` must be a section", path[..=i].join(".")))?;
+    }
+    Ok(cur.entry((*last).into()).or_insert(serde_yaml::Value::Null))
 }
 
 /// A built-in preset (or a preset file) as a `TrainConfig`, unresolved.
@@ -362,8 +420,12 @@ pub fn preset_config(preset: &str) -> Result<TrainConfig> {
 }
 
 /// `over` laid over `base`: mappings merge key by key (recursively), anything else replaces.
+/// A tagged value of another kind (`{kind: gaussian, …}` over `{kind: ornstein_uhlenbeck, …}`)
+/// replaces too: the old kind's fields mean nothing to the new one.
 fn overlay(base: serde_yaml::Value, over: serde_yaml::Value) -> serde_yaml::Value {
+    let kind = |m: &serde_yaml::Mapping| m.get("kind").cloned();
     match (base, over) {
+        (serde_yaml::Value::Mapping(b), serde_yaml::Value::Mapping(o)) if kind(&o).is_some() && kind(&b) != kind(&o) => serde_yaml::Value::Mapping(o),
         (serde_yaml::Value::Mapping(mut b), serde_yaml::Value::Mapping(o)) => {
             for (k, v) in o {
                 let merged = match b.remove(&k) {
@@ -436,6 +498,7 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
             (doc, args.run.clone().unwrap_or_else(|| PathBuf::from("runs").join(name)), false)
         }
     };
+    expand_shorthands(&mut doc, false)?;
     if let Some(n) = args.actors {
         set_path(&mut doc, "actors.count", &n.to_string())?;
     }
@@ -451,6 +514,7 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
     for kv in &args.set {
         let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
         set_path(&mut doc, k.trim(), v.trim())?;
+        expand_shorthands(&mut doc, true)?;
     }
     Ok((parse_config(doc)?.resolve()?, run, resuming))
 }
@@ -1440,6 +1504,85 @@ mod tests {
         assert!(set_path(&mut doc, "map.inner", "1").is_err(), "map is a string, not a section");
         set_path(&mut doc, "learner.no_such_field", "1").unwrap();
         assert!(parse_config(doc).is_err(), "unknown fields are refused");
+    }
+
+    /// Every leaf of a resolved config as (dotted path, value).
+    fn leaves(v: &serde_yaml::Value, path: &str, out: &mut Vec<(String, serde_yaml::Value)>) {
+        match v {
+            serde_yaml::Value::Mapping(m) => {
+                for (k, v) in m {
+                    let k = k.as_str().expect("string keys");
+                    leaves(v, &if path.is_empty() { k.to_owned() } else { format!("{path}.{k}") }, out);
+                }
+            }
+            _ => out.push((path.to_owned(), v.clone())),
+        }
+    }
+
+    /// A different value of the same kind for `path`, if one can be written on a command line.
+    fn another(path: &str, v: &serde_yaml::Value) -> Option<serde_yaml::Value> {
+        use serde_yaml::Value as V;
+        Some(match v {
+            V::Bool(b) => V::Bool(!b),
+            V::Number(n) if n.is_u64() || n.is_i64() => V::from(n.as_i64().unwrap_or(0) + 1),
+            V::Number(n) => V::from(if n.as_f64()? == 0.0 { 0.5 } else { n.as_f64()? * 1.25 }),
+            V::String(s) if path == "learner.algorithm" => V::from(if s == "td3" { "ddpg" } else { "td3" }),
+            V::String(s) if path == "map" || path == "eval.map" => V::from(if s == "env2" { "env3" } else { "env2" }),
+            V::String(s) => V::from(format!("{s}x")),
+            V::Sequence(s) if !s.is_empty() => V::Sequence(Vec::new()),
+            V::Null => V::from(3),
+            _ => return None,
+        })
+    }
+
+    fn lookup<'a>(v: &'a serde_yaml::Value, path: &str) -> Option<&'a serde_yaml::Value> {
+        path.split('.').try_fold(v, |v, k| v.get(k))
+    }
+
+    #[test]
+    fn every_set_path_reaches_the_resolved_config_or_is_refused_by_name() {
+        for preset in ["env1-sac", "env2-ddpg", "outdoor20-sac"] {
+            let (base, ..) = load_config(&train_args(preset, &[])).unwrap();
+            let mut all = Vec::new();
+            leaves(&serde_yaml::to_value(&base).unwrap(), "", &mut all);
+            assert!(all.len() > 80, "{preset}: {} settable paths", all.len());
+            let mut silent = Vec::new();
+            for (path, value) in all {
+                let Some(new) = another(&path, &value) else { continue };
+                let set = format!("{path}={}", serde_yaml::to_string(&new).unwrap().trim());
+                match load_config(&train_args(preset, &[&set])) {
+                    Ok((cfg, ..)) => {
+                        let resolved = serde_yaml::to_value(&cfg).unwrap();
+                        let got = lookup(&resolved, &path);
+                        // A number may come back as the other kind (3 → 3.0).
+                        let same = got == Some(&new) || got.and_then(|g| g.as_f64()).zip(new.as_f64()).is_some_and(|(a, b)| a == b);
+                        if !same {
+                            silent.push(format!("--set {set} resolved to {got:?}"));
+                        }
+                    }
+                    Err(e) => {
+                        let (msg, leaf) = (format!("{e:#}"), path.rsplit('.').next().unwrap());
+                        if !msg.contains(leaf) {
+                            silent.push(format!("--set {set} refused without naming `{leaf}`: {msg}"));
+                        }
+                    }
+                }
+            }
+            assert!(silent.is_empty(), "{preset}: --set paths that do not reach the config:\n{}", silent.join("\n"));
+        }
+        // The reward lives in env.reward: a preset's `reward:` is laid under --set, and a --set
+        // of the shorthand replaces it (then later --set fields apply on top).
+        let (c, ..) = load_config(&train_args("env1-sac", &["env.reward.speed_weight=2"])).unwrap();
+        assert_eq!(c.env.reward, RewardConfig { speed_weight: 2.0, ..RewardConfig::exploration() });
+        let (c, ..) = load_config(&train_args("env1-sac", &["env.reward.speed_weight=2", "reward=search_and_rescue", "env.reward.turn_penalty=1"])).unwrap();
+        assert_eq!(c.env.reward, RewardConfig { turn_penalty: 1.0, ..RewardConfig::search_and_rescue() });
+        let (c, ..) = load_config(&train_args("env2-sac", &["max_steps=3000"])).unwrap();
+        assert_eq!(c.env.episode.max_steps, 3000);
+        // Unknown keys are errors that name them.
+        for (bad, named) in [("learner.no_such_knob=1", "no_such_knob"), ("no_such_section.x=1", "no_such_section"), ("env.reward.no_such_weight=1", "no_such_weight"), ("reward=no_such_reward", "no_such_reward")] {
+            let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
+            assert!(e.contains(named), "--set {bad}: {e}");
+        }
     }
 
     fn train_args(preset: &str, set: &[&str]) -> TrainArgs {

@@ -89,9 +89,6 @@ pub struct LearnerConfig {
     pub tau: f64,
     /// M, minibatch size in eqs. 1, 3, 6, 10, 11 [paper Table I: 128].
     pub batch_size: usize,
-    /// Replay capacity in transitions [paper Table I: 1,000,000]. Used by whoever builds the
-    /// replay table; kept here so one file configures a run.
-    pub replay_capacity: usize,
     /// Largest global L2 norm of each network's gradient before the optimiser step; `null`
     /// disables clipping [inferred: 1.0, MATLAB `rlOptimizerOptions.GradientThreshold`; note
     /// MATLAB's default method clips each parameter tensor's norm, we clip the whole
@@ -134,7 +131,6 @@ impl Default for LearnerConfig {
             critic_lr: 5e-4,
             tau: 0.001,
             batch_size: 128,
-            replay_capacity: 1_000_000,
             grad_clip_norm: Some(1.0),
             adam: AdamConfig::default(),
             fused_critics: true,
@@ -340,9 +336,6 @@ impl LearnerConfig {
         if self.batch_size == 0 {
             return bad("batch_size", "is 0; must be ≥ 1".into());
         }
-        if self.replay_capacity == 0 {
-            return bad("replay_capacity", "is 0; must be ≥ 1".into());
-        }
         if let Some(c) = self.grad_clip_norm {
             if !positive(c) {
                 return bad(
@@ -423,10 +416,9 @@ mod tests {
                 c.actor_lr,
                 c.critic_lr,
                 c.tau,
-                c.batch_size,
-                c.replay_capacity
+                c.batch_size
             ),
-            (0.995, 5e-5, 5e-4, 0.001, 128, 1_000_000)
+            (0.995, 5e-5, 5e-4, 0.001, 128)
         );
         assert_eq!((c.hidden_width, c.grad_clip_norm), (256, Some(1.0)));
         assert_eq!(
