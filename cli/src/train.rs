@@ -219,7 +219,7 @@ pub struct TrainConfig {
     #[serde(default)]
     pub learner: LearnerConfig,
     /// Publishing / checkpoint / metrics cadence of the learner.
-    #[serde(default = "default_driver")]
+    #[serde(default)]
     pub driver: DriverConfig,
     /// The replay table (capacity, sampler, rate limiter); dims are set from `env`.
     #[serde(default = "default_table")]
@@ -242,10 +242,6 @@ pub struct TrainConfig {
 
 fn yes() -> bool {
     true
-}
-
-fn default_driver() -> DriverConfig {
-    DriverConfig { publish_every: 50, checkpoint_every: 20_000, checkpoint_keep: 2, metrics_every: 200, send_priorities: false }
 }
 
 fn default_table() -> TableConfig {
@@ -354,7 +350,7 @@ pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
     let mut defaults = serde_yaml::Mapping::new();
     defaults.insert("env".into(), serde_yaml::to_value(EnvConfig::default())?);
     defaults.insert("learner".into(), serde_yaml::to_value(LearnerConfig::default())?);
-    defaults.insert("driver".into(), serde_yaml::to_value(default_driver())?);
+    defaults.insert("driver".into(), serde_yaml::to_value(DriverConfig::default())?);
     defaults.insert("replay".into(), serde_yaml::to_value(default_table())?);
     defaults.insert("actors".into(), serde_yaml::to_value(ActorsSettings::default())?);
     defaults.insert("stop".into(), serde_yaml::to_value(StopCriteria::default())?);
@@ -1599,12 +1595,12 @@ mod tests {
             let d = default_table();
             assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(32.0), "{name}");
             assert_eq!((cfg.replay.rate_limiter.min_size_to_sample, cfg.replay.max_batch_rows), (d.rate_limiter.min_size_to_sample, d.max_batch_rows), "{name}");
-            assert_eq!(cfg.driver, default_driver(), "{name}");
+            assert_eq!(cfg.driver, DriverConfig::default(), "{name}");
         }
         let (cfg, _, _) = load_config(&train_args("env1-sac", &["replay.rate_limiter.samples_per_insert=128", "driver.publish_every=10"])).unwrap();
         assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(128.0));
         assert_eq!(cfg.replay.rate_limiter.error_buffer, default_table().rate_limiter.error_buffer);
-        assert_eq!((cfg.driver.publish_every, cfg.driver.checkpoint_every), (10, default_driver().checkpoint_every));
+        assert_eq!((cfg.driver.publish_every, cfg.driver.checkpoint_every), (10, DriverConfig::default().checkpoint_every));
         // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
         let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=200"])).unwrap();
         assert_eq!(cfg.replay.max_batch_rows, 64 + 200);
