@@ -242,7 +242,7 @@ fn run_jobs(args: &ReproduceArgs, runs: &Path, jobs: &[Job]) -> Result<()> {
             let mut c = children.lock().unwrap_or_else(|e| e.into_inner());
             c.stopping = true;
             for pid in &c.pids {
-                let _ = Command::new("kill").arg("-TERM").arg(pid.to_string()).status();
+                crate::signals::terminate(*pid);
             }
         });
     }

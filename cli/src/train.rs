@@ -15,7 +15,7 @@
 //! writes `summary.json`.
 
 use std::fs;
-use std::io::{BufRead, BufReader, IsTerminal, Write};
+use std::io::{BufRead, BufReader, IsTerminal};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -169,21 +169,41 @@ impl ProgressEval {
     }
 }
 
-/// `evals.csv`: one line per evaluation (while training and final).
-const EVALS_HEADER: &str = "wall_s,kind,policy_version,map,episodes,mean_steps,mean_return,mean_eqs,mean_ees,mean_distance_m,collisions";
+/// A row of `evals.csv`: one per evaluation (while training and final).
+#[derive(Serialize)]
+struct EvalLine<'a> {
+    wall_s: f64,
+    kind: &'a str,
+    policy_version: u64,
+    map: &'a str,
+    episodes: usize,
+    mean_steps: f64,
+    mean_return: f64,
+    mean_eqs: f64,
+    mean_ees: f64,
+    mean_distance_m: f64,
+    collisions: u32,
+}
 
 fn append_eval(run: &Path, wall_s: f64, kind: &str, s: &eval::EvalSummary) -> Result<()> {
     let path = run.join("evals.csv");
     let new = !path.exists();
-    let mut f = fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
-    if new {
-        writeln!(f, "{EVALS_HEADER}")?;
-    }
-    writeln!(
-        f,
-        "{wall_s:.1},{kind},{},{},{},{:.1},{:.3},{:.2},{:.4},{:.2},{}",
-        s.policy_version, s.map, s.episodes.len(), s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.collisions
-    )?;
+    let f = fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
+    let mut w = csv::WriterBuilder::new().has_headers(new).from_writer(f);
+    w.serialize(EvalLine {
+        wall_s,
+        kind,
+        policy_version: s.policy_version,
+        map: &s.map,
+        episodes: s.episodes.len(),
+        mean_steps: s.mean_steps,
+        mean_return: s.mean_return,
+        mean_eqs: s.mean_eqs,
+        mean_ees: s.mean_ees,
+        mean_distance_m: s.mean_distance_m,
+        collisions: s.collisions,
+    })?;
+    w.flush()?;
     Ok(())
 }
 
@@ -519,17 +539,19 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
 // Episodes: CSV and moving averages
 // ---------------------------------------------------------------------------------------------
 
-const CSV_HEADER: &str = "episode,wall_s,actor_id,policy_version,return,steps,terminal,eqs,ees,distance_m,shaded_time_s";
-
-/// One training episode as the run records it.
-#[derive(Clone, Debug, PartialEq)]
+/// One training episode as the run records it: a row of `episodes.csv` (the `csv` crate
+/// writes and reads it, quoting what must be quoted — an actor id is the peer's).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeRow {
     pub episode: u64,
     pub wall_s: f64,
     pub actor_id: String,
     pub policy_version: u64,
+    #[serde(rename = "return")]
     pub episode_return: f64,
     pub steps: u32,
+    /// Written 1 (a collision ended it) or 0.
+    #[serde(with = "zero_one")]
     pub terminal: bool,
     pub eqs: f64,
     pub ees: f64,
@@ -537,45 +559,36 @@ pub struct EpisodeRow {
     pub shaded_time_s: f64,
 }
 
-impl EpisodeRow {
-    fn csv(&self) -> String {
-        format!(
-            "{},{:.3},{},{},{:.4},{},{},{},{:.4},{:.3},{:.2}",
-            self.episode, self.wall_s, self.actor_id, self.policy_version, self.episode_return, self.steps, u8::from(self.terminal), self.eqs, self.ees, self.distance_m, self.shaded_time_s
-        )
+/// A bool as 0 / 1 (what spreadsheets and pandas read as numbers).
+mod zero_one {
+    use serde::{Deserialize, Deserializer, Serializer};
+    pub fn serialize<S: Serializer>(b: &bool, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_u8(u8::from(*b))
     }
-
-    fn parse(line: &str) -> Option<EpisodeRow> {
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 11 {
-            return None;
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<bool, D::Error> {
+        match u8::deserialize(d)? {
+            0 => Ok(false),
+            1 => Ok(true),
+            n => Err(serde::de::Error::custom(format!("terminal is {n}, expected 0 or 1"))),
         }
-        Some(EpisodeRow {
-            episode: f[0].parse().ok()?,
-            wall_s: f[1].parse().ok()?,
-            actor_id: f[2].to_owned(),
-            policy_version: f[3].parse().ok()?,
-            episode_return: f[4].parse().ok()?,
-            steps: f[5].parse().ok()?,
-            terminal: f[6] == "1",
-            eqs: f[7].parse().ok()?,
-            ees: f[8].parse().ok()?,
-            distance_m: f[9].parse().ok()?,
-            shaded_time_s: f[10].parse().ok()?,
-        })
     }
 }
 
-/// Reads a run's `episodes.csv` (for a resume); lines that do not parse (a torn last line
+/// Appends rows to `episodes.csv` (the header first when the file is new).
+fn episodes_writer(file: fs::File, header: bool) -> csv::Writer<fs::File> {
+    csv::WriterBuilder::new().has_headers(header).from_writer(file)
+}
+
+/// Reads a run's `episodes.csv` (for a resume); rows that do not parse (a torn last line
 /// after a crash) are skipped and counted.
 pub fn read_episodes(path: &Path) -> (Vec<EpisodeRow>, usize) {
-    let Ok(text) = fs::read_to_string(path) else { return (Vec::new(), 0) };
+    let Ok(mut r) = csv::Reader::from_path(path) else { return (Vec::new(), 0) };
     let mut rows = Vec::new();
     let mut bad = 0;
-    for line in text.lines().skip(1).filter(|l| !l.trim().is_empty()) {
-        match EpisodeRow::parse(line) {
-            Some(r) => rows.push(r),
-            None => bad += 1,
+    for row in r.deserialize::<EpisodeRow>() {
+        match row {
+            Ok(row) => rows.push(row),
+            Err(_) => bad += 1,
         }
     }
     (rows, bad)
@@ -688,7 +701,7 @@ impl Proc {
     fn stop(&mut self, grace: Duration) {
         let Some(c) = self.child.as_mut() else { return };
         if c.try_wait().ok().flatten().is_none() {
-            let _ = Command::new("kill").arg("-TERM").arg(c.id().to_string()).status();
+            crate::signals::terminate(c.id());
             let end = Instant::now() + grace;
             while Instant::now() < end {
                 if c.try_wait().ok().flatten().is_some() {
@@ -1025,10 +1038,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     }
     let offset_s = rows.last().map_or(0.0, |r| r.wall_s);
     truncate_torn_line(&csv_path)?;
-    let mut csv = fs::OpenOptions::new().create(true).append(true).open(&csv_path)?;
-    if rows.is_empty() && bad == 0 {
-        writeln!(csv, "{CSV_HEADER}")?;
-    }
+    let mut csv = episodes_writer(fs::OpenOptions::new().create(true).append(true).open(&csv_path)?, rows.is_empty() && bad == 0);
     let first_episode_this_session = rows.len();
 
     let learner_status = Arc::new(Mutex::new(LearnerStatus::default()));
@@ -1248,7 +1258,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     // Orderly shutdown: actors (flush their batches), the learner (final checkpoint), the replay.
     for a in &mut actors {
         if let Some(c) = a.child.as_ref() {
-            let _ = Command::new("kill").arg("-TERM").arg(c.id().to_string()).status();
+            crate::signals::terminate(c.id());
         }
     }
     for a in &mut actors {
@@ -1369,7 +1379,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
 
 /// Appends a training episode (numbered after the last one) to `rows` and `episodes.csv`;
 /// evaluation records are not part of the training curve.
-fn record_episode(e: EpisodeStats, wall_s: f64, rows: &mut Vec<EpisodeRow>, csv: &mut fs::File) -> Result<()> {
+fn record_episode(e: EpisodeStats, wall_s: f64, rows: &mut Vec<EpisodeRow>, csv: &mut csv::Writer<fs::File>) -> Result<()> {
     if e.evaluation {
         return Ok(());
     }
@@ -1386,7 +1396,9 @@ fn record_episode(e: EpisodeStats, wall_s: f64, rows: &mut Vec<EpisodeRow>, csv:
         distance_m: e.distance_m,
         shaded_time_s: e.shaded_time_s,
     };
-    writeln!(csv, "{}", row.csv())?;
+    csv.serialize(&row)?;
+    // A line at a time: a crash tears at most the last one (skipped on resume).
+    csv.flush()?;
     rows.push(row);
     Ok(())
 }
@@ -1646,16 +1658,24 @@ mod tests {
     fn episodes_csv_round_trips_and_skips_a_torn_line() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("episodes.csv");
-        let rows = vec![row(1, -12.5, 37), row(2, 321.25, 1000)];
-        let mut text = format!("{CSV_HEADER}\n");
+        // An actor id is the peer's: a comma or a quote in it stays inside its field.
+        let mut odd = row(2, 321.25, 1000);
+        odd.actor_id = "actor,\"0\"".into();
+        let rows = vec![row(1, -12.5, 37), odd];
+        let mut w = episodes_writer(std::fs::File::create(&p).unwrap(), true);
         for r in &rows {
-            text.push_str(&r.csv());
-            text.push('\n');
+            w.serialize(r).unwrap();
         }
-        text.push_str("3,12.0,actor-0");
-        std::fs::write(&p, text).unwrap();
+        drop(w);
+        let text = std::fs::read_to_string(&p).unwrap();
+        assert!(text.starts_with("episode,wall_s,actor_id,policy_version,return,steps,terminal,eqs,ees,distance_m,shaded_time_s\n1,1.0,actor-0-1-2,3,-12.5,37,1,"), "{text}");
+        std::fs::write(&p, format!("{text}3,12.0,actor-0")).unwrap();
         let (back, bad) = read_episodes(&p);
         assert_eq!(bad, 1);
         assert_eq!(back, rows);
+        // A file written before the csv crate (fixed decimals) reads back the same way.
+        std::fs::write(&p, "episode,wall_s,actor_id,policy_version,return,steps,terminal,eqs,ees,distance_m,shaded_time_s\n7,12.345,actor-1-9-0,40,321.2500,1000,0,55,1.1300,49.000,0.00\n").unwrap();
+        let (back, bad) = read_episodes(&p);
+        assert_eq!((back.len(), bad, back[0].episode, back[0].terminal, back[0].episode_return), (1, 0, 7, false, 321.25));
     }
 }

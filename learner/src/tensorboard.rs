@@ -91,34 +91,9 @@ pub struct Scalar {
 // CRC-32C and TFRecord framing
 // ---------------------------------------------------------------------------------------------
 
-const CRC32C_TABLE: [u32; 256] = {
-    let mut table = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut k = 0;
-        while k < 8 {
-            c = if c & 1 != 0 {
-                (c >> 1) ^ 0x82F6_3B78
-            } else {
-                c >> 1
-            };
-            k += 1;
-        }
-        table[i] = c;
-        i += 1;
-    }
-    table
-};
-
-/// CRC-32C (Castagnoli), as TFRecord uses. Table-driven, one byte per step.
-pub fn crc32c(data: &[u8]) -> u32 {
-    let mut crc = !0u32;
-    for &byte in data {
-        crc = CRC32C_TABLE[((crc ^ u32::from(byte)) & 0xff) as usize] ^ (crc >> 8);
-    }
-    !crc
-}
+/// CRC-32C (Castagnoli), as TFRecord uses (the `crc32c` crate; hardware-accelerated where
+/// the CPU has it).
+pub use crc32c::crc32c;
 
 /// The masked CRC-32C TFRecord stores (masking keeps CRCs of CRC-bearing data well spread).
 pub fn masked_crc32c(data: &[u8]) -> u32 {

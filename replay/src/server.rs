@@ -251,9 +251,10 @@ impl Interceptor for BearerAuth {
     }
 }
 
-/// Equality whose time does not depend on where the inputs first differ.
+/// Equality whose time does not depend on where the inputs first differ (`subtle`).
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+    use subtle::ConstantTimeEq;
+    a.ct_eq(b).into()
 }
 
 /// Serves `table` on `listener` with plain HTTP/2 and no token (loopback listeners only)
