@@ -127,12 +127,9 @@ fn write_policy(driver: &Driver, path: &Option<PathBuf>) {
     }
 }
 
-/// Writes `version` to `path` atomically (temp file + rename).
+/// Writes `version` to `path` atomically.
 fn write_version_file(path: &Path, version: u64) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, format!("{version}\n"))?;
-    std::fs::rename(&tmp, path)?;
-    Ok(())
+    Ok(mapless_learner::weights::write_file_atomically(path, format!("{version}\n").as_bytes())?)
 }
 
 fn has_checkpoint(dir: &Path) -> bool {

@@ -854,9 +854,7 @@ fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f6
 /// Writes `path` whole or not at all (a temporary file beside it, then a rename), so a run
 /// killed mid-write leaves the old file, never a torn one.
 pub fn write_atomic(path: &Path, contents: &str) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    fs::write(&tmp, contents).with_context(|| format!("writing {}", tmp.display()))?;
-    fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
+    mapless_learner::weights::write_file_atomically(path, contents.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }
 
 /// How `Summary::stopped_because` begins for a run that Ctrl-C or SIGTERM stopped.

@@ -127,17 +127,6 @@ fn sync_dir(dir: &Path) -> Result<(), LearnerError> {
         .map_err(|e| io_err(dir, "fsync directory", e))
 }
 
-/// Replaces `path` with `bytes` atomically: temporary file in the same directory, fsync,
-/// rename, fsync the directory.
-fn replace_file_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
-    let parent = parent_of(path);
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
-    write_synced(&tmp, bytes)?;
-    fs::rename(&tmp, path).map_err(|e| io_err(path, "rename into place", e))?;
-    sync_dir(&parent)
-}
-
 fn parent_of(path: &Path) -> PathBuf {
     match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
@@ -215,7 +204,7 @@ fn policy_bytes(agent: &Agent) -> Result<Vec<u8>, LearnerError> {
 /// `version` (update counter), `format`, `format_version` and, for SAC, `sac.log_std_min` /
 /// `sac.log_std_max`.
 pub fn export_policy(agent: &Agent, path: &Path) -> Result<(), LearnerError> {
-    replace_file_atomically(path, &policy_bytes(agent)?)
+    crate::weights::write_file_atomically(path, &policy_bytes(agent)?)
 }
 
 /// A policy file read back: tensors `(name, shape, values)` sorted by name, and the metadata.
@@ -345,7 +334,7 @@ pub fn save(
     }
     let dir = root.join(&name);
     write_checkpoint(&dir, agent, extra)?;
-    replace_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes())?;
+    crate::weights::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes())?;
 
     let mut all: Vec<String> = fs::read_dir(root)
         .map_err(|e| io_err(root, "list", e))?

@@ -771,40 +771,25 @@ fn io_error(path: &Path, error: std::io::Error) -> LearnerError {
     }
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file in the same directory, fsync, rename
-/// over `path`, fsync of the directory. A crash leaves either the old file or the new one,
-/// never a torn one (at worst a stray `.<name>.tmp.<pid>` file).
+/// Writes `bytes` to `path` atomically: a temporary file in the same directory (`tempfile`),
+/// fsync, rename over `path` (`persist`), fsync of the directory. A crash leaves either the old
+/// file or the new one, never a torn one. The one atomic write of the workspace's services (the
+/// policy, checkpoints' `LATEST`, the run's config and summary, the weights version file).
 pub fn write_file_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
-    let file_name = path.file_name().ok_or_else(|| {
-        io_error(
-            path,
-            std::io::Error::new(std::io::ErrorKind::InvalidInput, "path has no file name"),
-        )
-    })?;
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
         _ => PathBuf::from("."),
     };
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(file_name);
-    tmp_name.push(format!(".tmp.{}", std::process::id()));
-    let tmp = dir.join(tmp_name);
-    let result = (|| -> Result<(), LearnerError> {
-        let mut file = fs::File::create(&tmp).map_err(|e| io_error(&tmp, e))?;
-        file.write_all(bytes).map_err(|e| io_error(&tmp, e))?;
-        file.sync_all().map_err(|e| io_error(&tmp, e))?;
-        drop(file);
-        fs::rename(&tmp, path).map_err(|e| io_error(path, e))?;
-        // The rename itself is durable only once the directory is.
-        if let Ok(d) = fs::File::open(&dir) {
-            d.sync_all().map_err(|e| io_error(&dir, e))?;
-        }
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = fs::remove_file(&tmp);
+    let mut tmp = tempfile::Builder::new().prefix(".").suffix(".tmp").tempfile_in(&dir).map_err(|e| io_error(&dir, e))?;
+    tmp.write_all(bytes).map_err(|e| io_error(tmp.path(), e))?;
+    tmp.as_file().sync_all().map_err(|e| io_error(tmp.path(), e))?;
+    // A failed persist drops (removes) the temporary file.
+    tmp.persist(path).map_err(|e| io_error(path, e.error))?;
+    // The rename itself is durable only once the directory is.
+    if let Ok(d) = fs::File::open(&dir) {
+        d.sync_all().map_err(|e| io_error(&dir, e))?;
     }
-    result
+    Ok(())
 }
 
 /// [`snapshot_to_safetensors`], written atomically to `path` ([`write_file_atomically`]).
