@@ -2,7 +2,8 @@
 # mapless — the whole test suite.
 #
 # Installs what the tests need (torch 2.13.0 from PyPI into the git-ignored .torch/, for the
-# learner's tch 0.26; see scripts/setup-torch.sh), then runs every test of every crate: unit
+# learner's tch 0.26; see scripts/setup-torch.sh), checks the formatting (rustfmt.toml) and the
+# lints (clippy, warnings denied; [workspace.lints] in Cargo.toml), then runs every test of every crate: unit
 # and integration tests, the CLI end to end, and the criterion benches once each in test mode
 # (so they keep compiling and running), then doc tests.
 #
@@ -12,5 +13,7 @@ root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$root"
 command -v cargo >/dev/null || { echo "test.sh: cargo not found; install Rust from https://rustup.rs" >&2; exit 1; }
 bash "$root/scripts/setup-torch.sh"
+cargo fmt --all --check
+cargo clippy --locked --workspace --all-targets -- -D warnings
 cargo test --locked --workspace --all-targets
 cargo test --locked --workspace --doc

@@ -60,7 +60,6 @@ impl NetError {
     }
 }
 
-
 /// Where a gRPC service is and how to reach it: the URI, optional TLS (a CA certificate to
 /// trust, and the name to check it against) and an optional bearer token, sent as
 /// `authorization: Bearer <token>` on every call (what the replay and weights services check).
@@ -80,12 +79,7 @@ pub struct GrpcEndpoint {
 impl std::fmt::Debug for GrpcEndpoint {
     // Never print the token.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GrpcEndpoint")
-            .field("uri", &self.uri)
-            .field("tls", &self.tls_ca_pem.is_some())
-            .field("tls_domain", &self.tls_domain)
-            .field("token", &self.token.is_some())
-            .finish()
+        f.debug_struct("GrpcEndpoint").field("uri", &self.uri).field("tls", &self.tls_ca_pem.is_some()).field("tls_domain", &self.tls_domain).field("token", &self.token.is_some()).finish()
     }
 }
 
@@ -106,19 +100,8 @@ impl GrpcEndpoint {
     /// `http://host:port`.
     pub fn new(uri: impl Into<String>) -> Self {
         let uri = uri.into();
-        let uri = if uri.contains("://") {
-            uri
-        } else {
-            format!("http://{uri}")
-        };
-        Self {
-            uri,
-            tls_ca_pem: None,
-            tls_domain: None,
-            token: None,
-            connect_timeout: Duration::from_secs(5),
-            stream_window: None,
-        }
+        let uri = if uri.contains("://") { uri } else { format!("http://{uri}") };
+        Self { uri, tls_ca_pem: None, tls_domain: None, token: None, connect_timeout: Duration::from_secs(5), stream_window: None }
     }
 
     /// Use TLS, trusting `ca_pem` (PEM certificate(s)); `domain` overrides the name the
@@ -134,15 +117,8 @@ impl GrpcEndpoint {
     }
 
     /// [`GrpcEndpoint::with_tls`] with the CA read from a PEM file.
-    pub fn with_tls_ca_file(
-        self,
-        path: &Path,
-        domain: Option<String>,
-    ) -> Result<Self, NetError> {
-        let pem = std::fs::read(path).map_err(|error| NetError::FileIo {
-            path: path.to_owned(),
-            error,
-        })?;
+    pub fn with_tls_ca_file(self, path: &Path, domain: Option<String>) -> Result<Self, NetError> {
+        let pem = std::fs::read(path).map_err(|error| NetError::FileIo { path: path.to_owned(), error })?;
         Ok(self.with_tls(pem, domain))
     }
 
@@ -155,15 +131,10 @@ impl GrpcEndpoint {
     /// [`GrpcEndpoint::with_token`] with the token read from a file (trimmed), as the replay
     /// server reads its own: a file keeps the token out of `ps`.
     pub fn with_token_file(self, path: &Path) -> Result<Self, NetError> {
-        let raw = std::fs::read(path).map_err(|error| NetError::FileIo {
-            path: path.to_owned(),
-            error,
-        })?;
+        let raw = std::fs::read(path).map_err(|error| NetError::FileIo { path: path.to_owned(), error })?;
         let token = String::from_utf8_lossy(&raw).trim().to_owned();
         if token.is_empty() {
-            return Err(NetError::Config {
-                reason: format!("token file {} is empty", path.display()),
-            });
+            return Err(NetError::Config { reason: format!("token file {} is empty", path.display()) });
         }
         Ok(self.with_token(token))
     }
@@ -196,9 +167,7 @@ impl GrpcEndpoint {
     }
 
     fn config_error(&self, reason: String) -> NetError {
-        NetError::Config {
-            reason: format!("endpoint `{}`: {reason}", self.uri),
-        }
+        NetError::Config { reason: format!("endpoint `{}`: {reason}", self.uri) }
     }
 
     fn endpoint(&self) -> Result<Endpoint, NetError> {
@@ -216,14 +185,10 @@ impl GrpcEndpoint {
                 if let Some(domain) = &self.tls_domain {
                     tls = tls.domain_name(domain.clone());
                 }
-                endpoint = endpoint
-                    .tls_config(tls)
-                    .map_err(|e| self.config_error(format!("TLS: {e}")))?;
+                endpoint = endpoint.tls_config(tls).map_err(|e| self.config_error(format!("TLS: {e}")))?;
             }
             None if self.uri.starts_with("https://") => {
-                return Err(self.config_error(
-                    "https:// needs a CA certificate to trust (GrpcEndpoint::with_tls)".into(),
-                ));
+                return Err(self.config_error("https:// needs a CA certificate to trust (GrpcEndpoint::with_tls)".into()));
             }
             None => {}
         }
@@ -231,37 +196,16 @@ impl GrpcEndpoint {
     }
 
     fn token_value(&self) -> Result<Option<MetadataValue<Ascii>>, NetError> {
-        self.token
-            .as_ref()
-            .map(|t| {
-                format!("Bearer {t}")
-                    .parse::<MetadataValue<Ascii>>()
-                    .map_err(|_| {
-                        self.config_error("the bearer token is not printable ASCII".into())
-                    })
-            })
-            .transpose()
+        self.token.as_ref().map(|t| format!("Bearer {t}").parse::<MetadataValue<Ascii>>().map_err(|_| self.config_error("the bearer token is not printable ASCII".into()))).transpose()
     }
 
     /// Dials the service; failures are [`NetError::Grpc`] with code UNAVAILABLE.
     pub async fn connect(&self, service: &'static str) -> Result<Channel, NetError> {
-        self.endpoint()?
-            .connect()
-            .await
-            .map_err(|e| NetError::Grpc {
-                service,
-                endpoint: self.uri.clone(),
-                code: Code::Unavailable,
-                message: format!("cannot connect: {}", error_chain(&e)),
-            })
+        self.endpoint()?.connect().await.map_err(|e| NetError::Grpc { service, endpoint: self.uri.clone(), code: Code::Unavailable, message: format!("cannot connect: {}", error_chain(&e)) })
     }
 
     /// `message` as a request carrying the bearer token, if any.
-    pub fn request<T>(
-        &self,
-        _service: &'static str,
-        message: T,
-    ) -> Result<Request<T>, NetError> {
+    pub fn request<T>(&self, _service: &'static str, message: T) -> Result<Request<T>, NetError> {
         let mut request = Request::new(message);
         if let Some(value) = self.token_value()? {
             request.metadata_mut().insert("authorization", value);
@@ -271,12 +215,7 @@ impl GrpcEndpoint {
 
     /// A status from the peer as a [`NetError::Grpc`].
     pub fn status_error(&self, service: &'static str, status: &Status) -> NetError {
-        NetError::Grpc {
-            service,
-            endpoint: self.uri.clone(),
-            code: status.code(),
-            message: status.message().to_owned(),
-        }
+        NetError::Grpc { service, endpoint: self.uri.clone(), code: status.code(), message: status.message().to_owned() }
     }
 }
 
@@ -292,4 +231,3 @@ pub fn error_chain(error: &dyn std::error::Error) -> String {
     }
     text
 }
-

@@ -120,20 +120,14 @@ impl Policy {
     /// Loads a snapshot, checking names, shapes, dtypes and the algorithm's head.
     pub fn from_snapshot(snapshot: &WeightsSnapshot) -> Result<Self, ActorError> {
         snapshot.validate().map_err(|e| ActorError::BadWeights(e.to_string()))?;
-        let algorithm = Algorithm::try_from(snapshot.algorithm)
-            .map_err(|_| ActorError::BadWeights(format!("unknown algorithm {}", snapshot.algorithm)))?;
+        let algorithm = Algorithm::try_from(snapshot.algorithm).map_err(|_| ActorError::BadWeights(format!("unknown algorithm {}", snapshot.algorithm)))?;
         let (obs_dim, act_dim) = (snapshot.obs_dim as usize, snapshot.act_dim as usize);
         let (head, out_width) = match algorithm {
             Algorithm::Ddpg | Algorithm::Td3 => (Head::Deterministic, act_dim),
             Algorithm::Sac => {
                 let bound = |key: &str| -> Result<f32, ActorError> {
-                    let raw = snapshot.metadata.get(key).ok_or_else(|| {
-                        ActorError::BadWeights(format!("SAC snapshot lacks metadata `{key}`"))
-                    })?;
-                    raw.parse::<f32>()
-                        .ok()
-                        .filter(|v| v.is_finite())
-                        .ok_or_else(|| ActorError::BadWeights(format!("metadata `{key}` = {raw:?} is not a finite number")))
+                    let raw = snapshot.metadata.get(key).ok_or_else(|| ActorError::BadWeights(format!("SAC snapshot lacks metadata `{key}`")))?;
+                    raw.parse::<f32>().ok().filter(|v| v.is_finite()).ok_or_else(|| ActorError::BadWeights(format!("metadata `{key}` = {raw:?} is not a finite number")))
                 };
                 let (lo, hi) = (bound(META_LOG_STD_MIN)?, bound(META_LOG_STD_MAX)?);
                 if lo > hi {
@@ -175,17 +169,7 @@ impl Policy {
         let l0 = load(LAYERS[0], Some(obs_dim), None)?;
         let l1 = load(LAYERS[1], Some(l0.outputs), None)?;
         let out = load(LAYERS[2], Some(l1.outputs), Some(out_width))?;
-        Ok(Policy {
-            version: snapshot.version,
-            algorithm,
-            obs_dim,
-            act_dim,
-            layers: [l0, l1, out],
-            head,
-            h0: Vec::new(),
-            h1: Vec::new(),
-            y: Vec::new(),
-        })
+        Ok(Policy { version: snapshot.version, algorithm, obs_dim, act_dim, layers: [l0, l1, out], head, h0: Vec::new(), h1: Vec::new(), y: Vec::new() })
     }
 
     /// Version of the weights (copied into every transition's `policy_version`).
@@ -254,7 +238,7 @@ impl Policy {
     }
 
     fn check_rows(&self, obs: &[f32]) -> Result<usize, ActorError> {
-        if obs.len() % self.obs_dim != 0 || obs.is_empty() {
+        if !obs.len().is_multiple_of(self.obs_dim) || obs.is_empty() {
             return Err(ActorError::Dimension(format!("{} observation values are not whole rows of {}", obs.len(), self.obs_dim)));
         }
         if let Some(i) = obs.iter().position(|v| !v.is_finite()) {
@@ -362,12 +346,40 @@ mod tests {
     #[test]
     fn malformed_snapshots_are_refused_with_the_reason() {
         let cases: Vec<(WeightsSnapshot, &str)> = vec![
-            ({ let mut s = snapshot(Algorithm::Td3, 1); s.tensors.retain(|t| t.name != "actor.l1.bias"); s }, "`actor.l1.bias` is missing"),
+            (
+                {
+                    let mut s = snapshot(Algorithm::Td3, 1);
+                    s.tensors.retain(|t| t.name != "actor.l1.bias");
+                    s
+                },
+                "`actor.l1.bias` is missing",
+            ),
             (snapshot(Algorithm::Td3, 2), "expected [1, 2]"),
             (snapshot(Algorithm::Sac, 2), "lacks metadata `sac.log_std_min`"),
-            ({ let mut s = snapshot(Algorithm::Td3, 1); s.obs_dim = 3; s }, "`actor.l0.weight` is [2, 2], expected [any, 3]"),
-            ({ let mut s = snapshot(Algorithm::Ddpg, 1); s.tensors[0] = tensor("actor.l0.weight", &[2, 2], &[1.0, f32::NAN, 0.0, 0.0]); s }, "non-finite"),
-            ({ let mut s = snapshot(Algorithm::Td3, 1); s.algorithm = 0; s }, "not a known algorithm"),
+            (
+                {
+                    let mut s = snapshot(Algorithm::Td3, 1);
+                    s.obs_dim = 3;
+                    s
+                },
+                "`actor.l0.weight` is [2, 2], expected [any, 3]",
+            ),
+            (
+                {
+                    let mut s = snapshot(Algorithm::Ddpg, 1);
+                    s.tensors[0] = tensor("actor.l0.weight", &[2, 2], &[1.0, f32::NAN, 0.0, 0.0]);
+                    s
+                },
+                "non-finite",
+            ),
+            (
+                {
+                    let mut s = snapshot(Algorithm::Td3, 1);
+                    s.algorithm = 0;
+                    s
+                },
+                "not a known algorithm",
+            ),
         ];
         for (s, want) in cases {
             let err = Policy::from_snapshot(&s).unwrap_err().to_string();

@@ -24,10 +24,7 @@ pub struct WeightsSubscription {
 
 impl std::fmt::Debug for WeightsSubscription {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WeightsSubscription")
-            .field("endpoint", &self.endpoint)
-            .field("last_version", &self.last_version)
-            .finish()
+        f.debug_struct("WeightsSubscription").field("endpoint", &self.endpoint).field("last_version", &self.last_version).finish()
     }
 }
 
@@ -36,33 +33,12 @@ impl std::fmt::Debug for WeightsSubscription {
 ///
 /// Fails with [`NetError::Grpc`] when the server cannot be reached or refuses (e.g.
 /// FAILED_PRECONDITION for a protocol mismatch, UNAUTHENTICATED for a wrong token).
-pub async fn subscribe(
-    endpoint: &GrpcEndpoint,
-    min_version: u64,
-    subscriber_id: &str,
-) -> Result<WeightsSubscription, NetError> {
+pub async fn subscribe(endpoint: &GrpcEndpoint, min_version: u64, subscriber_id: &str) -> Result<WeightsSubscription, NetError> {
     let channel = endpoint.connect("weights").await?;
-    let mut client = WeightsServiceClient::new(channel)
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let request = endpoint.request(
-        "weights",
-        SubscribeRequest {
-            protocol_version: ProtocolVersion::V1 as i32,
-            min_version,
-            subscriber_id: subscriber_id.to_owned(),
-        },
-    )?;
-    let stream = client
-        .subscribe(request)
-        .await
-        .map_err(|s| endpoint.status_error("weights", &s))?
-        .into_inner();
-    Ok(WeightsSubscription {
-        stream,
-        endpoint: endpoint.uri().to_owned(),
-        last_version: min_version.saturating_sub(1),
-    })
+    let mut client = WeightsServiceClient::new(channel).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let request = endpoint.request("weights", SubscribeRequest { protocol_version: ProtocolVersion::V1 as i32, min_version, subscriber_id: subscriber_id.to_owned() })?;
+    let stream = client.subscribe(request).await.map_err(|s| endpoint.status_error("weights", &s))?.into_inner();
+    Ok(WeightsSubscription { stream, endpoint: endpoint.uri().to_owned(), last_version: min_version.saturating_sub(1) })
 }
 
 impl WeightsSubscription {
@@ -75,26 +51,13 @@ impl WeightsSubscription {
             Ok(Some(s)) => s,
             Ok(None) => return Ok(None),
             Err(status) => {
-                return Err(NetError::Grpc {
-                    service: "weights",
-                    endpoint: self.endpoint.clone(),
-                    code: status.code(),
-                    message: status.message().to_owned(),
-                });
+                return Err(NetError::Grpc { service: "weights", endpoint: self.endpoint.clone(), code: status.code(), message: status.message().to_owned() });
             }
         };
         let origin = || format!("{} version {}", self.endpoint, snapshot.version);
-        snapshot
-            .validate()
-            .map_err(|e| invalid(origin(), e.to_string()))?;
+        snapshot.validate().map_err(|e| invalid(origin(), e.to_string()))?;
         if snapshot.version <= self.last_version {
-            return Err(invalid(
-                origin(),
-                format!(
-                    "not newer than the previous version {}; the server broke the strictly-increasing rule",
-                    self.last_version
-                ),
-            ));
+            return Err(invalid(origin(), format!("not newer than the previous version {}; the server broke the strictly-increasing rule", self.last_version)));
         }
         self.last_version = snapshot.version;
         Ok(Some(snapshot))
@@ -106,17 +69,11 @@ impl WeightsSubscription {
     }
 }
 
-
 /// Follows the weights stream at `endpoint` until `stop` turns true: every newer snapshot
 /// replaces the value in `tx` (actors read it between steps). A broken or refused stream is
 /// retried with exponential backoff (100 ms doubling to 5 s) from the next version on, so
 /// the learner may restart at any time. Errors are logged, never fatal.
-pub async fn follow(
-    endpoint: GrpcEndpoint,
-    subscriber_id: String,
-    tx: watch::Sender<Option<std::sync::Arc<WeightsSnapshot>>>,
-    mut stop: watch::Receiver<bool>,
-) {
+pub async fn follow(endpoint: GrpcEndpoint, subscriber_id: String, tx: watch::Sender<Option<std::sync::Arc<WeightsSnapshot>>>, mut stop: watch::Receiver<bool>) {
     let mut backoff = Duration::from_millis(100);
     let mut next_version = 1;
     while !*stop.borrow() {

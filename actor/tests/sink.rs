@@ -7,16 +7,26 @@ use std::time::{Duration, Instant};
 
 use mapless_actor::net::GrpcEndpoint;
 use mapless_actor::sink::{GrpcSink, Sink};
-use mapless_proto::{Transition, TransitionBatchBuilder};
 use mapless_proto::v1::TransitionBatch;
+use mapless_proto::{Transition, TransitionBatchBuilder};
 use mapless_replay::{Table, TableConfig};
 
 fn batch(actor: &str, sequence: u64, rows: usize) -> TransitionBatch {
     let mut b = TransitionBatchBuilder::new(3, 2);
     for i in 0..rows {
         let v = (sequence * 1000 + i as u64) as f32;
-        b.push(Transition { obs: &[v, 0.0, 1.0], action: &[0.1, -0.1], reward: v, next_obs: &[v + 1.0, 0.0, 1.0], terminal: false, truncated: false, episode_id: 1, step: i as u32, policy_version: sequence })
-            .unwrap();
+        b.push(Transition {
+            obs: &[v, 0.0, 1.0],
+            action: &[0.1, -0.1],
+            reward: v,
+            next_obs: &[v + 1.0, 0.0, 1.0],
+            terminal: false,
+            truncated: false,
+            episode_id: 1,
+            step: i as u32,
+            policy_version: sequence,
+        })
+        .unwrap();
     }
     b.finish(actor, sequence)
 }

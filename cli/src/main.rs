@@ -13,7 +13,7 @@
 //!   mapless reproduce [--quick|--full]     the paper's matrix; Tables II–V and figures in docs/results
 //! ```
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -287,7 +287,6 @@ fn main() {
     }
 }
 
-
 fn run(cli: Cli) -> Result<()> {
     let log_json = cli.log_json;
     match cli.cmd {
@@ -325,7 +324,17 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
     } else {
         println!("{:>3} {:>6} {:>9} {:>5} {:>6} {:>9} {:>8}", "ep", "steps", "return", "EQS", "EES", "dist m", "shade s");
         for e in &s.episodes {
-            println!("{:>3} {:>6} {:>9.1} {:>5} {:>6.2} {:>9.1} {:>8.1}{}", e.episode, e.steps, e.episode_return, e.eqs, e.ees, e.distance_m, e.shaded_time_s, if e.collided { "  collision" } else { "" });
+            println!(
+                "{:>3} {:>6} {:>9.1} {:>5} {:>6.2} {:>9.1} {:>8.1}{}",
+                e.episode,
+                e.steps,
+                e.episode_return,
+                e.eqs,
+                e.ees,
+                e.distance_m,
+                e.shaded_time_s,
+                if e.collided { "  collision" } else { "" }
+            );
         }
         println!("mean {:>6.0} {:>9.1} {:>5.1} {:>6.2} {:>9.1} {:>8.1}  ({} collisions)", s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.mean_shaded_time_s, s.collisions);
         println!("pictures and eval.json in {}", out.display());
@@ -375,7 +384,13 @@ fn maps_stats(map: &str, grid: f64, headings: usize, json: bool) -> Result<()> {
     let steps = world.cfg.episode.max_steps;
     println!("{}: {} collision-free poses scanned ({grid} m × {headings} headings)", world.map.name, b.poses);
     println!("  largest minimum range {:.2} m at ({:.1}, {:.1}, {:.0}°); mean {:.2} m", b.max_min_range_m, b.at[0], b.at[1], b.at[2].to_degrees(), b.mean_min_range_m);
-    println!("  eq. (1) per step at most {:.3} ({:.0} over {steps} steps); standing still at most {:.3} ({:.0})", b.per_step, b.per_step * f64::from(steps), b.standing_still_per_step, b.standing_still_per_step * f64::from(steps));
+    println!(
+        "  eq. (1) per step at most {:.3} ({:.0} over {steps} steps); standing still at most {:.3} ({:.0})",
+        b.per_step,
+        b.per_step * f64::from(steps),
+        b.standing_still_per_step,
+        b.standing_still_per_step * f64::from(steps)
+    );
     Ok(())
 }
 
@@ -387,7 +402,7 @@ fn maps_list() -> Result<()> {
     Ok(())
 }
 
-fn maps_show(map: &str, out: &PathBuf, px_per_m: Option<f32>) -> Result<()> {
+fn maps_show(map: &str, out: &Path, px_per_m: Option<f32>) -> Result<()> {
     let m = Map::resolve(map)?;
     let ppm = px_per_m.unwrap_or_else(|| default_px_per_m(&m));
     let title = format!("{}  {:.0} M X {:.0} M", m.name, m.bounds.width(), m.bounds.height());
@@ -406,10 +421,7 @@ fn maps_rasterize(map: &str, resolution: f64, out: &PathBuf) -> Result<()> {
     pgm.extend_from_slice(&px);
     let pgm_path = out.join(format!("{}.pgm", m.name));
     std::fs::write(&pgm_path, pgm).with_context(|| format!("writing {}", pgm_path.display()))?;
-    let yaml = format!(
-        "image: {}.pgm\nresolution: {resolution}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: trinary\n",
-        m.name, m.bounds.min_x, m.bounds.min_y
-    );
+    let yaml = format!("image: {}.pgm\nresolution: {resolution}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: trinary\n", m.name, m.bounds.min_x, m.bounds.min_y);
     let yaml_path = out.join(format!("{}.yaml", m.name));
     std::fs::write(&yaml_path, yaml).with_context(|| format!("writing {}", yaml_path.display()))?;
     println!("wrote {} ({w}x{h} px at {resolution} m) and {}", pgm_path.display(), yaml_path.display());
@@ -461,7 +473,13 @@ fn rollout(a: RolloutArgs) -> Result<()> {
             "{}: {} steps ({}), return {:.1}, EQS {}, EES {:.2}, distance {:.1} m, shaded {:.1} s",
             world.map.name,
             s.steps,
-            if s.terminal { "collision" } else if s.truncated { "step limit" } else { "stopped" },
+            if s.terminal {
+                "collision"
+            } else if s.truncated {
+                "step limit"
+            } else {
+                "stopped"
+            },
             s.return_,
             s.eqs,
             s.ees,
@@ -485,7 +503,8 @@ fn bench_sim(map: &str, seconds: f64, vehicles: usize, json: bool) -> Result<()>
         let mut env = bench_env(map, preset, RaycastMethod::Auto, vehicles)?;
         let r = measure(&mut env, Duration::from_secs_f64(seconds))?;
         if json {
-            let config = serde_json::json!({"map": map, "beams": preset.beams, "fov_deg": preset.fov_rad.to_degrees().round(), "vehicles": vehicles, "threads": 1, "method": "auto", "seconds": r.seconds});
+            let config =
+                serde_json::json!({"map": map, "beams": preset.beams, "fov_deg": preset.fov_rad.to_degrees().round(), "vehicles": vehicles, "threads": 1, "method": "auto", "seconds": r.seconds});
             report(true, "sim.vehicle_steps_per_s", config, r.steps_per_s().round(), "steps/s");
         } else {
             println!("  {:<40} {:>12.0} steps/s   ({} steps, {} episodes)", preset.label, r.steps_per_s(), r.steps, r.episodes);

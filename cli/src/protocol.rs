@@ -70,7 +70,23 @@ mod tests {
     use super::*;
 
     fn rows(values: &[(f64, u32)]) -> Vec<EpisodeRow> {
-        values.iter().enumerate().map(|(i, &(r, s))| EpisodeRow { episode: i as u64 + 1, wall_s: 0.0, actor_id: String::new(), policy_version: 0, episode_return: r, steps: s, terminal: false, eqs: 0.0, ees: 0.0, distance_m: 0.0, shaded_time_s: 0.0 }).collect()
+        values
+            .iter()
+            .enumerate()
+            .map(|(i, &(r, s))| EpisodeRow {
+                episode: i as u64 + 1,
+                wall_s: 0.0,
+                actor_id: String::new(),
+                policy_version: 0,
+                episode_return: r,
+                steps: s,
+                terminal: false,
+                eqs: 0.0,
+                ees: 0.0,
+                distance_m: 0.0,
+                shaded_time_s: 0.0,
+            })
+            .collect()
     }
 
     #[test]

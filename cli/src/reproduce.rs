@@ -20,8 +20,8 @@
 //! criteria). The page says which, and every figure on it comes from the runs in `--runs`.
 
 use std::fmt::Write as _;
-use std::io::Write as _;
 use std::fs;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::mpsc;
@@ -187,10 +187,7 @@ pub fn reproduce(args: &ReproduceArgs) -> Result<()> {
     }
     let experiments = args.experiments()?;
     let runs = args.runs();
-    let jobs: Vec<Job> = experiments
-        .iter()
-        .flat_map(|e| (1..=args.seeds).map(|k| Job { exp: *e, seed: k, dir: runs.join(e.preset).join(format!("seed-{k}")) }).collect::<Vec<_>>())
-        .collect();
+    let jobs: Vec<Job> = experiments.iter().flat_map(|e| (1..=args.seeds).map(|k| Job { exp: *e, seed: k, dir: runs.join(e.preset).join(format!("seed-{k}")) }).collect::<Vec<_>>()).collect();
     // The page is written from whatever finished, also when some runs failed or were stopped.
     let ran = if args.report_only { Ok(()) } else { run_jobs(args, &runs, &jobs) };
     let page = report(args, &runs, &experiments)?;
@@ -473,7 +470,11 @@ fn figures(args: &ReproduceArgs, root: &Path, e: &Experiment, runs: &[RunResult]
         Ok(())
     };
     let alg = e.algorithm.to_uppercase();
-    copy(dir.join("curves.png"), format!("{curves}-{}.png", e.preset), format!("{alg} on {}: return and steps per episode with their order-{} averages (seed {})", e.world, first.summary.window, first.seed))?;
+    copy(
+        dir.join("curves.png"),
+        format!("{curves}-{}.png", e.preset),
+        format!("{alg} on {}: return and steps per episode with their order-{} averages (seed {})", e.world, first.summary.window, first.seed),
+    )?;
     if first.summary.evaluation.is_some() {
         copy(dir.join("eval").join("episode-1.png"), format!("{traj}-{}.png", e.preset), format!("{alg} on {}: evaluation trajectory 1 of the final policy (seed {})", e.world, first.seed))?;
     }
@@ -548,7 +549,10 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
             continue;
         }
         let _ = writeln!(page, "\n## Table {table} — training on {world}\n");
-        let _ = writeln!(page, "Paper / ours. Average return and steps are the moving averages at the end of training; the convergence episode is ours by the rule of `protocol::convergence_episode` (the paper states none).\n");
+        let _ = writeln!(
+            page,
+            "Paper / ours. Average return and steps are the moving averages at the end of training; the convergence episode is ours by the rule of `protocol::convergence_episode` (the paper states none).\n"
+        );
         let _ = writeln!(page, "| algorithm | convergence episode | average return | average steps | EQS | EES | eval collisions per run (of {eval_eps}) |");
         let _ = writeln!(page, "|---|---|---|---|---|---|---|");
         for t in rows {
@@ -574,27 +578,27 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
 
     // Table V.
     if results.iter().any(|(e, r)| e.on_env3 && r.iter().any(|x| x.env3.is_some())) {
-    let _ = writeln!(page, "\n## Table V — the six agents on env3 (never trained on)\n");
-    let _ = writeln!(page, "Paper / ours: steps before a collision or the {}-step limit, EQS, EES; collisions of our {ENV3_EPISODES} episodes per seed.\n", paper::ENV3_EVAL_STEPS);
-    let _ = writeln!(page, "| agent | steps | EQS | EES | collisions per run (of {ENV3_EPISODES}) |");
-    let _ = writeln!(page, "|---|---|---|---|---|");
-    for t in &paper::TABLE_V {
-        let Some((_, runs)) = results.iter().find(|(e, _)| e.world == t.trained_on && e.algorithm == t.algorithm) else { continue };
-        let env3 = |f: fn(&EvalSummary) -> f64| stat(runs, move |r| r.env3.as_ref().map(f));
-        let _ = writeln!(
-            page,
-            "| {}-{} | {} / {} | {:.0} / {} | {:.2} / {} | {} |",
-            t.algorithm.to_uppercase(),
-            t.trained_on,
-            t.steps,
-            cell(env3(|e| e.mean_steps), 0),
-            t.eqs,
-            cell(env3(|e| e.mean_eqs), 1),
-            t.ees,
-            cell(env3(|e| e.mean_ees), 2),
-            cell(env3(|e| f64::from(e.collisions)), 1),
-        );
-    }
+        let _ = writeln!(page, "\n## Table V — the six agents on env3 (never trained on)\n");
+        let _ = writeln!(page, "Paper / ours: steps before a collision or the {}-step limit, EQS, EES; collisions of our {ENV3_EPISODES} episodes per seed.\n", paper::ENV3_EVAL_STEPS);
+        let _ = writeln!(page, "| agent | steps | EQS | EES | collisions per run (of {ENV3_EPISODES}) |");
+        let _ = writeln!(page, "|---|---|---|---|---|");
+        for t in &paper::TABLE_V {
+            let Some((_, runs)) = results.iter().find(|(e, _)| e.world == t.trained_on && e.algorithm == t.algorithm) else { continue };
+            let env3 = |f: fn(&EvalSummary) -> f64| stat(runs, move |r| r.env3.as_ref().map(f));
+            let _ = writeln!(
+                page,
+                "| {}-{} | {} / {} | {:.0} / {} | {:.2} / {} | {} |",
+                t.algorithm.to_uppercase(),
+                t.trained_on,
+                t.steps,
+                cell(env3(|e| e.mean_steps), 0),
+                t.eqs,
+                cell(env3(|e| e.mean_eqs), 1),
+                t.ees,
+                cell(env3(|e| e.mean_ees), 2),
+                cell(env3(|e| f64::from(e.collisions)), 1),
+            );
+        }
     }
 
     // Outdoor.
@@ -614,14 +618,19 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
         p.iter().map(|(a, v)| format!("{a} ({v:.1})")).collect::<Vec<_>>().join(" > ")
     };
     for (world, rows) in [("env1", &paper::TABLE_III[..]), ("env2", &paper::TABLE_IV[..])] {
-        let ours: Vec<(String, f64)> = results.iter().filter(|(e, _)| e.world == world).filter_map(|(e, r)| stat(r, |x| x.summary.evaluation.as_ref().map(|v| v.mean_eqs)).map(|s| (agent_name(e.algorithm, None), s.mean))).collect();
+        let ours: Vec<(String, f64)> = results
+            .iter()
+            .filter(|(e, _)| e.world == world)
+            .filter_map(|(e, r)| stat(r, |x| x.summary.evaluation.as_ref().map(|v| v.mean_eqs)).map(|s| (agent_name(e.algorithm, None), s.mean)))
+            .collect();
         if ours.is_empty() {
             continue;
         }
         let theirs: Vec<(String, f64)> = rows.iter().map(|t| (agent_name(t.algorithm, None), t.eqs)).collect();
         let _ = writeln!(page, "- EQS on {world}: ours {}; paper {}.", rank(ours), rank(theirs));
     }
-    let ours3: Vec<(String, f64)> = results.iter().filter(|(e, _)| e.on_env3).filter_map(|(e, r)| stat(r, |x| x.env3.as_ref().map(|v| v.mean_steps)).map(|s| (agent_name(e.algorithm, Some(e.world)), s.mean))).collect();
+    let ours3: Vec<(String, f64)> =
+        results.iter().filter(|(e, _)| e.on_env3).filter_map(|(e, r)| stat(r, |x| x.env3.as_ref().map(|v| v.mean_steps)).map(|s| (agent_name(e.algorithm, Some(e.world)), s.mean))).collect();
     if !ours3.is_empty() {
         let theirs3: Vec<(String, f64)> = paper::TABLE_V.iter().map(|t| (agent_name(t.algorithm, Some(t.trained_on)), f64::from(t.steps))).collect();
         let _ = writeln!(page, "- Steps on env3: ours {}; paper {}.", rank(ours3), rank(theirs3));
@@ -629,10 +638,27 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
 
     // Where we differ and why.
     let _ = writeln!(page, "\n## Where we match, where we differ, and why\n");
-    let _ = writeln!(page, "- **Schedules.** {}", if all.iter().all(|r| r.minutes_cap.is_none()) { "The runs followed the presets' schedules: the paper's episode counts, stopping early when the paper-quality criteria (order-50 averages and an evaluation at the paper's EQS/EES) hold." } else { "These runs were capped at minutes where the paper trains for days: a run that has not met its preset's criteria by then is compared as it stands, so low returns and short episodes here are schedules cut short, not a verdict on the algorithm. `--full` runs the paper's schedules." });
-    let _ = writeln!(page, "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block, so the per-step return of eq. (1) is bounded as the paper's Table III implies. env2 and env3 are not yet held to Tables IV–V that way: `mapless maps stats env2` finds open lanes where every beam reads 12 m, so env2's per-step returns and EQS can run above the paper's.");
-    let _ = writeln!(page, "- **Inferred parameters.** Where the paper is silent (network width, exploration noise, the update-to-data ratio, the EQS reading) the presets say what we chose and why; these runs took {ratios} (the paper: every step).");
-    let _ = writeln!(page, "- **Evaluation.** The paper scores one trajectory per agent; ours average {eval_eps} deterministic episodes per run from random starts, so a lucky or unlucky start weighs less.");
+    let _ = writeln!(
+        page,
+        "- **Schedules.** {}",
+        if all.iter().all(|r| r.minutes_cap.is_none()) {
+            "The runs followed the presets' schedules: the paper's episode counts, stopping early when the paper-quality criteria (order-50 averages and an evaluation at the paper's EQS/EES) hold."
+        } else {
+            "These runs were capped at minutes where the paper trains for days: a run that has not met its preset's criteria by then is compared as it stands, so low returns and short episodes here are schedules cut short, not a verdict on the algorithm. `--full` runs the paper's schedules."
+        }
+    );
+    let _ = writeln!(
+        page,
+        "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block, so the per-step return of eq. (1) is bounded as the paper's Table III implies. env2 and env3 are not yet held to Tables IV–V that way: `mapless maps stats env2` finds open lanes where every beam reads 12 m, so env2's per-step returns and EQS can run above the paper's."
+    );
+    let _ = writeln!(
+        page,
+        "- **Inferred parameters.** Where the paper is silent (network width, exploration noise, the update-to-data ratio, the EQS reading) the presets say what we chose and why; these runs took {ratios} (the paper: every step)."
+    );
+    let _ = writeln!(
+        page,
+        "- **Evaluation.** The paper scores one trajectory per agent; ours average {eval_eps} deterministic episodes per run from random starts, so a lucky or unlucky start weighs less."
+    );
 
     // Row by row, as the data says.
     let verdict = |ours: Option<Stat>, theirs: f64, decimals: usize| -> String {
@@ -682,13 +708,19 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     for (e, runs) in &results {
         all_figs.extend(figures(args, root, e, runs)?);
     }
-    let _ = writeln!(page, "The paper's numbering: Figs. 8–9 env1 curves, 10 env1 trajectories, 11–12 env2 curves, 13 env2 trajectories, 14 env3, 15 outdoor return curve, 16 outdoor trajectory (shaded regions marked).\n");
+    let _ = writeln!(
+        page,
+        "The paper's numbering: Figs. 8–9 env1 curves, 10 env1 trajectories, 11–12 env2 curves, 13 env2 trajectories, 14 env3, 15 outdoor return curve, 16 outdoor trajectory (shaded regions marked).\n"
+    );
     for (name, caption) in &all_figs {
         let _ = writeln!(page, "**{name}** — {caption}\n\n![{caption}]({name})\n");
     }
 
     let json: Vec<serde_json::Value> = results.iter().map(|(e, r)| serde_json::json!({"preset": e.preset, "world": e.world, "algorithm": e.algorithm, "runs": r})).collect();
-    fs::write(args.out.join("results.json"), serde_json::to_string_pretty(&serde_json::json!({"command_mode": args.mode(), "seeds": args.seeds, "runs": root.display().to_string(), "experiments": json}))?)?;
+    fs::write(
+        args.out.join("results.json"),
+        serde_json::to_string_pretty(&serde_json::json!({"command_mode": args.mode(), "seeds": args.seeds, "runs": root.display().to_string(), "experiments": json}))?,
+    )?;
     let path = args.out.join("README.md");
     fs::write(&path, page).with_context(|| format!("writing {}", path.display()))?;
     Ok(path)

@@ -25,17 +25,17 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use mapless_actor::run::{ActorConfig, ExplorationSettings, ReplayTarget};
 use mapless_actor::NoiseConfig;
+use mapless_actor::run::{ActorConfig, ExplorationSettings, ReplayTarget};
 use mapless_learner::config::{AlgorithmKind, ExplorationNoise, LearnerConfig};
 use mapless_learner::driver::DriverConfig;
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ServerInfoRequest};
+use mapless_replay::TableConfig;
 use mapless_replay::server::ServerConfig;
 use mapless_replay::shm::ShmConfig;
-use mapless_replay::TableConfig;
-use mapless_sim::{EnvConfig, RewardConfig};
 use mapless_sim::plot::{CurvePoint, CurveStyle, training_curves_png};
+use mapless_sim::{EnvConfig, RewardConfig};
 use serde::{Deserialize, Serialize};
 
 use crate::eval;
@@ -90,7 +90,18 @@ pub struct StopCriteria {
 
 impl Default for StopCriteria {
     fn default() -> Self {
-        StopCriteria { episodes: None, window: 50, average_return: None, average_steps: None, minutes: None, eval_eqs: None, eval_ees: None, eval_max_collisions: 0, eval_episodes: 10, convergence_tolerance: 0.1 }
+        StopCriteria {
+            episodes: None,
+            window: 50,
+            average_return: None,
+            average_steps: None,
+            minutes: None,
+            eval_eqs: None,
+            eval_ees: None,
+            eval_max_collisions: 0,
+            eval_episodes: 10,
+            convergence_tolerance: 0.1,
+        }
     }
 }
 
@@ -778,7 +789,14 @@ fn wait_line(rx: &std_mpsc::Receiver<(String, String)>, role: &str, prefix: &str
 
 /// Starts a service child and waits until it prints `ready` followed by its address; returns
 /// it with that address and the one of its `metrics on http://ADDR/metrics` line.
-fn start_service(role: &str, cmd: Vec<String>, log: PathBuf, ready: &str, rx: &std_mpsc::Receiver<(String, String)>, tx: &std_mpsc::Sender<(String, String)>) -> Result<(Proc, SocketAddr, SocketAddr)> {
+fn start_service(
+    role: &str,
+    cmd: Vec<String>,
+    log: PathBuf,
+    ready: &str,
+    rx: &std_mpsc::Receiver<(String, String)>,
+    tx: &std_mpsc::Sender<(String, String)>,
+) -> Result<(Proc, SocketAddr, SocketAddr)> {
     let mut proc_ = Proc::spawn(role, cmd, log, Some(tx.clone()))?;
     let said = wait_line(rx, role, ready, Duration::from_secs(120), &mut proc_)?;
     let addr = said_addr(&said, ready)?;
@@ -880,7 +898,7 @@ fn fmt_int(n: u64) -> String {
     let s = n.to_string();
     let mut out = String::new();
     for (i, c) in s.chars().enumerate() {
-        if i > 0 && (s.len() - i) % 3 == 0 {
+        if i > 0 && (s.len() - i).is_multiple_of(3) {
             out.push(',');
         }
         out.push(c);
@@ -1073,7 +1091,14 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
                 let gate = cfg.stop.eval_goal().expect("a gate evaluation runs only with a goal");
                 append_eval(&run, wall_s, "criteria", &s)?;
                 if gate.met_by(&s) {
-                    let why = format!("order-{} moving averages reached the goal ({}) and an evaluation of policy v{} met {} ({})", cfg.stop.window, averages(), s.policy_version, gate.describe(), s.one_line());
+                    let why = format!(
+                        "order-{} moving averages reached the goal ({}) and an evaluation of policy v{} met {} ({})",
+                        cfg.stop.window,
+                        averages(),
+                        s.policy_version,
+                        gate.describe(),
+                        s.one_line()
+                    );
                     return Ok(Some((at, why, s)));
                 }
                 tracing::info!(policy_version = s.policy_version, "averages met, evaluation short of {}: {}", gate.describe(), s.one_line());
@@ -1111,7 +1136,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
                         replay_client = ReplayServiceClient::connect(format!("http://{replay_addr}")).await.ok();
                     }
                     let c = replay_client.as_mut()?;
-                    c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32, ..Default::default() }).await.ok().map(tonic::Response::into_inner)
+                    c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32 }).await.ok().map(tonic::Response::into_inner)
                 };
                 tokio::time::timeout(Duration::from_secs(1), fetch).await.ok().flatten()
             });
@@ -1139,8 +1164,20 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             let restarts = total_restarts(&replay, &learner, &actors);
             let line = format!(
                 "[{:02}:{:02}:{:02}] ep {} | avg{} return {:.1} steps {:.0} | updates {} ({:.0}/s) | env {:.0} steps/s | replay {} | policy v{} | actors {}/{}{}",
-                el / 3600, el / 60 % 60, el % 60,
-                fmt_int(rows.len() as u64), w, avg_r, avg_s, fmt_int(ls.updates), ls.updates_per_s, env_rate.2, fmt_int(replay_size), ls.weights_version, alive, actors.len(),
+                el / 3600,
+                el / 60 % 60,
+                el % 60,
+                fmt_int(rows.len() as u64),
+                w,
+                avg_r,
+                avg_s,
+                fmt_int(ls.updates),
+                ls.updates_per_s,
+                env_rate.2,
+                fmt_int(replay_size),
+                ls.weights_version,
+                alive,
+                actors.len(),
                 if restarts > 0 { format!(" ({restarts} restarts)") } else { String::new() }
             );
             if tty {
@@ -1446,7 +1483,19 @@ mod tests {
     use super::*;
 
     fn row(episode: u64, ret: f64, steps: u32) -> EpisodeRow {
-        EpisodeRow { episode, wall_s: episode as f64, actor_id: "actor-0-1-2".into(), policy_version: 3, episode_return: ret, steps, terminal: steps < 1000, eqs: 12.0, ees: 1.5, distance_m: 40.0, shaded_time_s: 0.0 }
+        EpisodeRow {
+            episode,
+            wall_s: episode as f64,
+            actor_id: "actor-0-1-2".into(),
+            policy_version: 3,
+            episode_return: ret,
+            steps,
+            terminal: steps < 1000,
+            eqs: 12.0,
+            ees: 1.5,
+            distance_m: 40.0,
+            shaded_time_s: 0.0,
+        }
     }
 
     /// deploy/config/ (the compose cluster) is written by hand; it must keep parsing, pass each
@@ -1585,14 +1634,27 @@ mod tests {
         let (c, ..) = load_config(&train_args("env2-sac", &["max_steps=3000"])).unwrap();
         assert_eq!(c.env.episode.max_steps, 3000);
         // Unknown keys are errors that name them.
-        for (bad, named) in [("learner.no_such_knob=1", "no_such_knob"), ("no_such_section.x=1", "no_such_section"), ("env.reward.no_such_weight=1", "no_such_weight"), ("reward=no_such_reward", "no_such_reward")] {
+        for (bad, named) in
+            [("learner.no_such_knob=1", "no_such_knob"), ("no_such_section.x=1", "no_such_section"), ("env.reward.no_such_weight=1", "no_such_weight"), ("reward=no_such_reward", "no_such_reward")]
+        {
             let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
             assert!(e.contains(named), "--set {bad}: {e}");
         }
     }
 
     fn train_args(preset: &str, set: &[&str]) -> TrainArgs {
-        TrainArgs { preset: preset.into(), actors: None, vehicles: None, episodes: None, minutes: None, run: None, resume: None, set: set.iter().map(|s| (*s).to_owned()).collect(), force: false, print_config: false }
+        TrainArgs {
+            preset: preset.into(),
+            actors: None,
+            vehicles: None,
+            episodes: None,
+            minutes: None,
+            run: None,
+            resume: None,
+            set: set.iter().map(|s| (*s).to_owned()).collect(),
+            force: false,
+            print_config: false,
+        }
     }
 
     #[test]

@@ -42,8 +42,8 @@ fn rollout_writes_a_trajectory_picture_and_episode_json() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let steps = v["steps"].as_u64().unwrap();
-    assert!(steps >= 1 && steps <= 300);
-    assert_eq!(v["terminal"].as_bool().unwrap() || v["truncated"].as_bool().unwrap(), true);
+    assert!((1..=300).contains(&steps));
+    assert!(v["terminal"].as_bool().unwrap() || v["truncated"].as_bool().unwrap());
     assert!(v["eqs"].as_u64().unwrap() >= 1);
     png_size(&d.join("trajectory.png"));
     let file: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("episode.json")).unwrap()).unwrap();
@@ -71,17 +71,7 @@ fn bench_learner_json_prints_rates_the_f32_ceiling_and_both_update_paths() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let lines: Vec<serde_json::Value> = String::from_utf8(o.stdout).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     let names: Vec<&str> = lines.iter().map(|l| l["bench"].as_str().unwrap()).collect();
-    assert_eq!(
-        names,
-        [
-            "learner.matmul_gflops",
-            "learner.matmul_gflops",
-            "learner.updates_per_s",
-            "learner.f32_ceiling_updates_per_s",
-            "learner.share_of_f32_ceiling",
-            "learner.updates_per_s",
-        ]
-    );
+    assert_eq!(names, ["learner.matmul_gflops", "learner.matmul_gflops", "learner.updates_per_s", "learner.f32_ceiling_updates_per_s", "learner.share_of_f32_ceiling", "learner.updates_per_s",]);
     assert_eq!(lines[0]["config"]["dtype"], "f32");
     assert_eq!(lines[1]["config"]["dtype"], "bf16");
     assert_eq!(lines[2]["config"]["update"], "fused");

@@ -127,7 +127,7 @@ fn json(path: &Path) -> Option<serde_json::Value> {
 fn server_info(rt: &tokio::runtime::Runtime, uri: &str) -> Option<ServerInfoResponse> {
     rt.block_on(async {
         let mut c = ReplayServiceClient::connect(uri.to_owned()).await.ok()?;
-        c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32, ..Default::default() }).await.ok().map(|r| r.into_inner())
+        c.server_info(ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32 }).await.ok().map(|r| r.into_inner())
     })
 }
 
@@ -171,7 +171,8 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
         last = Some(i.clone());
         if ok { i } else { None }
     });
-    let info = info.unwrap_or_else(|| panic!("no rows from 2 actors with policy version >= 3; last server info: {last:?}; output: {}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default()));
+    let info = info
+        .unwrap_or_else(|| panic!("no rows from 2 actors with policy version >= 3; last server info: {last:?}; output: {}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default()));
     let first_ids: BTreeSet<String> = info.actors.iter().map(|a| a.actor_id.clone()).collect();
     assert!(first_ids.len() >= 2, "at least two actor incarnations wrote: {first_ids:?}");
 

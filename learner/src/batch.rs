@@ -75,21 +75,13 @@ impl Minibatch {
     /// is read only to reject a row flagged both terminal and truncated.
     pub fn from_sampled(batch: &SampledBatch, device: tch::Device) -> Result<Self, LearnerError> {
         let len = |what: &str, got: usize, want: usize| {
-            if got == want {
-                Ok(())
-            } else {
-                Err(LearnerError::InvalidBatch(format!(
-                    "`{what}` has {got} values, num_rows says {want}"
-                )))
-            }
+            if got == want { Ok(()) } else { Err(LearnerError::InvalidBatch(format!("`{what}` has {got} values, num_rows says {want}"))) }
         };
         let rows = batch.num_rows as usize;
         len("truncated", batch.truncated.len(), rows)?;
         len("terminal", batch.terminal.len(), rows)?;
         if let Some(i) = (0..rows).find(|&i| batch.terminal[i] && batch.truncated[i]) {
-            return Err(LearnerError::InvalidBatch(format!(
-                "row {i} is both terminal and truncated"
-            )));
+            return Err(LearnerError::InvalidBatch(format!("row {i} is both terminal and truncated")));
         }
         let (obs, action, reward, next_obs) = (batch.obs_values(), batch.action_values(), batch.reward_values(), batch.next_obs_values());
         Self::from_columns(
@@ -116,66 +108,35 @@ impl Minibatch {
             return bad("no rows".into());
         }
         if c.obs_dim == 0 || c.act_dim == 0 {
-            return bad(format!(
-                "obs_dim {} and act_dim {} must be ≥ 1",
-                c.obs_dim, c.act_dim
-            ));
+            return bad(format!("obs_dim {} and act_dim {} must be ≥ 1", c.obs_dim, c.act_dim));
         }
-        let (Some(n_obs), Some(n_act)) =
-            (c.rows.checked_mul(c.obs_dim), c.rows.checked_mul(c.act_dim))
-        else {
+        let (Some(n_obs), Some(n_act)) = (c.rows.checked_mul(c.obs_dim), c.rows.checked_mul(c.act_dim)) else {
             return bad("rows × dims overflows".into());
         };
-        for (what, got, want) in [
-            ("obs", c.obs.len(), n_obs),
-            ("next_obs", c.next_obs.len(), n_obs),
-            ("action", c.action.len(), n_act),
-            ("reward", c.reward.len(), c.rows),
-            ("terminal", c.terminal.len(), c.rows),
-        ] {
+        for (what, got, want) in
+            [("obs", c.obs.len(), n_obs), ("next_obs", c.next_obs.len(), n_obs), ("action", c.action.len(), n_act), ("reward", c.reward.len(), c.rows), ("terminal", c.terminal.len(), c.rows)]
+        {
             if got != want {
-                return bad(format!(
-                    "`{what}` has {got} values, {} rows × dims need {want}",
-                    c.rows
-                ));
+                return bad(format!("`{what}` has {got} values, {} rows × dims need {want}", c.rows));
             }
         }
-        for (what, got) in [
-            ("importance_weights", c.importance_weights.len()),
-            ("keys", c.keys.len()),
-        ] {
+        for (what, got) in [("importance_weights", c.importance_weights.len()), ("keys", c.keys.len())] {
             if got != 0 && got != c.rows {
                 return bad(format!("`{what}` has {got} values, need 0 or {}", c.rows));
             }
         }
-        for (what, col, width) in [
-            ("obs", c.obs, c.obs_dim),
-            ("next_obs", c.next_obs, c.obs_dim),
-            ("action", c.action, c.act_dim),
-            ("reward", c.reward, 1),
-        ] {
+        for (what, col, width) in [("obs", c.obs, c.obs_dim), ("next_obs", c.next_obs, c.obs_dim), ("action", c.action, c.act_dim), ("reward", c.reward, 1)] {
             if let Some(i) = col.iter().position(|v| !v.is_finite()) {
                 return bad(format!("`{what}` row {} holds {}", i / width, col[i]));
             }
         }
-        if let Some(i) = c
-            .importance_weights
-            .iter()
-            .position(|w| !(w.is_finite() && *w >= 0.0))
-        {
-            return bad(format!(
-                "`importance_weights` row {i} is {}; must be finite and ≥ 0",
-                c.importance_weights[i]
-            ));
+        if let Some(i) = c.importance_weights.iter().position(|w| !(w.is_finite() && *w >= 0.0)) {
+            return bad(format!("`importance_weights` row {i} is {}; must be finite and ≥ 0", c.importance_weights[i]));
         }
         let (b, d, a) = (c.rows as i64, c.obs_dim as i64, c.act_dim as i64);
         let to = |v: &[f32], shape: [i64; 2]| Tensor::from_slice(v).view(shape).to_device(device);
         let terminal: Vec<f32> = c.terminal.iter().map(|&t| f32::from(u8::from(t))).collect();
-        let weights = if c.importance_weights.is_empty() {
-            Tensor::ones([b, 1], (tch::Kind::Float, device))
-        } else {
-            to(c.importance_weights, [b, 1])
-        };
+        let weights = if c.importance_weights.is_empty() { Tensor::ones([b, 1], (tch::Kind::Float, device)) } else { to(c.importance_weights, [b, 1]) };
         Ok(Self {
             obs: to(c.obs, [b, d]),
             action: to(c.action, [b, a]),
@@ -207,37 +168,11 @@ impl Minibatch {
 
     /// A minibatch of `rows` random transitions (uniform values in [−1, 1], about 5%
     /// terminal), drawn from `rng`: for benchmarks and smoke tests.
-    pub fn random(
-        rows: usize,
-        obs_dim: usize,
-        act_dim: usize,
-        rng: &mut impl rand::Rng,
-        device: tch::Device,
-    ) -> Result<Self, LearnerError> {
-        let mut u =
-            |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect() };
-        let (obs, next_obs, action, reward) = (
-            u(rows * obs_dim),
-            u(rows * obs_dim),
-            u(rows * act_dim),
-            u(rows),
-        );
+    pub fn random(rows: usize, obs_dim: usize, act_dim: usize, rng: &mut impl rand::Rng, device: tch::Device) -> Result<Self, LearnerError> {
+        let mut u = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect() };
+        let (obs, next_obs, action, reward) = (u(rows * obs_dim), u(rows * obs_dim), u(rows * act_dim), u(rows));
         let terminal: Vec<bool> = reward.iter().map(|r| *r > 0.9).collect();
-        Self::from_columns(
-            BatchColumns {
-                rows,
-                obs_dim,
-                act_dim,
-                obs: &obs,
-                action: &action,
-                reward: &reward,
-                next_obs: &next_obs,
-                terminal: &terminal,
-                importance_weights: &[],
-                keys: &[],
-            },
-            device,
-        )
+        Self::from_columns(BatchColumns { rows, obs_dim, act_dim, obs: &obs, action: &action, reward: &reward, next_obs: &next_obs, terminal: &terminal, importance_weights: &[], keys: &[] }, device)
     }
 }
 
@@ -267,14 +202,8 @@ mod tests {
         let mb = Minibatch::from_sampled(&sampled(), tch::Device::Cpu).unwrap();
         assert_eq!(mb.obs.size(), vec![2, 2]);
         assert_eq!(mb.action.size(), vec![2, 1]);
-        assert_eq!(
-            Vec::<f32>::try_from(&mb.terminal.view([-1])).unwrap(),
-            vec![1.0, 0.0]
-        );
-        assert_eq!(
-            Vec::<f32>::try_from(&mb.weights.view([-1])).unwrap(),
-            vec![1.0, 0.25]
-        );
+        assert_eq!(Vec::<f32>::try_from(&mb.terminal.view([-1])).unwrap(), vec![1.0, 0.0]);
+        assert_eq!(Vec::<f32>::try_from(&mb.weights.view([-1])).unwrap(), vec![1.0, 0.25]);
         assert_eq!(mb.next_obs.double_value(&[1, 0]), 7.0);
         assert_eq!(mb.keys, vec![7, 9]);
     }
@@ -297,21 +226,11 @@ mod tests {
 
         let mut b = sampled();
         b.importance_weights[0] = -1.0;
-        assert!(
-            Minibatch::from_sampled(&b, tch::Device::Cpu)
-                .unwrap_err()
-                .to_string()
-                .contains("importance_weights")
-        );
+        assert!(Minibatch::from_sampled(&b, tch::Device::Cpu).unwrap_err().to_string().contains("importance_weights"));
 
         let mut b = sampled();
         b.truncated[0] = true;
-        assert!(
-            Minibatch::from_sampled(&b, tch::Device::Cpu)
-                .unwrap_err()
-                .to_string()
-                .contains("both terminal and truncated")
-        );
+        assert!(Minibatch::from_sampled(&b, tch::Device::Cpu).unwrap_err().to_string().contains("both terminal and truncated"));
 
         let mut b = sampled();
         b.num_rows = 0;

@@ -60,13 +60,7 @@ pub fn update_flops(cfg: &LearnerConfig, obs_dim: usize, act_dim: usize) -> f64 
 
 /// GFLOP/s of libtorch's `[rows, width] × [width, width]` product on `device` with the
 /// current thread settings, in f32 or (`bf16`) bfloat16, timed over about `seconds`.
-pub fn matmul_gflops(
-    rows: i64,
-    width: i64,
-    bf16: bool,
-    device: crate::Device,
-    seconds: f64,
-) -> Result<f64, LearnerError> {
+pub fn matmul_gflops(rows: i64, width: i64, bf16: bool, device: crate::Device, seconds: f64) -> Result<f64, LearnerError> {
     let kind = if bf16 { Kind::BFloat16 } else { Kind::Float };
     let device = device.to_tch();
     let _guard = tch::no_grad_guard();
@@ -136,10 +130,7 @@ mod tests {
         let diff = td3(1) - td3(2);
         assert!((diff - 2.0 * 128.0 * actor_step / 2.0).abs() < 1e-3, "{diff}");
         let ddpg = LearnerConfig { algorithm: AlgorithmKind::Ddpg, ..base };
-        let one_critic = actor + critic + 2.0 * critic + (256 * 256 + 256) as f64 + 2.0 * actor
-            + critic
-            + to_actions
-            + (256 * 256 + 256 * 2) as f64;
+        let one_critic = actor + critic + 2.0 * critic + (256 * 256 + 256) as f64 + 2.0 * actor + critic + to_actions + (256 * 256 + 256 * 2) as f64;
         assert_eq!(update_flops(&ddpg, 17, 2), 2.0 * 128.0 * one_critic);
     }
 

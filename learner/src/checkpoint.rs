@@ -87,31 +87,15 @@ struct StateFile {
 }
 
 fn io_err(path: &Path, what: &str, e: impl std::fmt::Display) -> LearnerError {
-    LearnerError::CheckpointIo {
-        path: path.to_path_buf(),
-        reason: format!("{what}: {e}"),
-    }
+    LearnerError::CheckpointIo { path: path.to_path_buf(), reason: format!("{what}: {e}") }
 }
 
 fn corrupt(path: &Path, reason: impl Into<String>) -> LearnerError {
-    LearnerError::CheckpointCorrupt {
-        path: path.to_path_buf(),
-        reason: reason.into(),
-    }
+    LearnerError::CheckpointCorrupt { path: path.to_path_buf(), reason: reason.into() }
 }
 
-fn mismatch(
-    path: &Path,
-    what: &str,
-    expected: impl ToString,
-    found: impl ToString,
-) -> LearnerError {
-    LearnerError::CheckpointMismatch {
-        path: path.to_path_buf(),
-        what: what.into(),
-        expected: expected.to_string(),
-        found: found.to_string(),
-    }
+fn mismatch(path: &Path, what: &str, expected: impl ToString, found: impl ToString) -> LearnerError {
+    LearnerError::CheckpointMismatch { path: path.to_path_buf(), what: what.into(), expected: expected.to_string(), found: found.to_string() }
 }
 
 /// Writes `bytes` to `path` and fsyncs the file.
@@ -122,9 +106,7 @@ fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
 }
 
 fn sync_dir(dir: &Path) -> Result<(), LearnerError> {
-    File::open(dir)
-        .and_then(|d| d.sync_all())
-        .map_err(|e| io_err(dir, "fsync directory", e))
+    File::open(dir).and_then(|d| d.sync_all()).map_err(|e| io_err(dir, "fsync directory", e))
 }
 
 fn parent_of(path: &Path) -> PathBuf {
@@ -135,55 +117,31 @@ fn parent_of(path: &Path) -> PathBuf {
 }
 
 /// Named f32 tensors (any device) as safetensors bytes with optional `__metadata__`.
-fn encode_tensors(
-    tensors: &[(String, Tensor)],
-    metadata: Option<HashMap<String, String>>,
-) -> Result<Vec<u8>, LearnerError> {
+fn encode_tensors(tensors: &[(String, Tensor)], metadata: Option<HashMap<String, String>>) -> Result<Vec<u8>, LearnerError> {
     let mut bytes: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::with_capacity(tensors.len());
     for (name, t) in tensors {
-        let t = t
-            .to(tch::Device::Cpu)
-            .to_kind(tch::Kind::Float)
-            .contiguous();
+        let t = t.to(tch::Device::Cpu).to_kind(tch::Kind::Float).contiguous();
         let values = Vec::<f32>::try_from(&t.reshape([-1]))?;
         let shape = t.size().iter().map(|&d| d as usize).collect();
-        bytes.push((
-            name.clone(),
-            shape,
-            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-        ));
+        bytes.push((name.clone(), shape, values.iter().flat_map(|v| v.to_le_bytes()).collect()));
     }
     let views = bytes
         .iter()
         .map(|(n, s, b)| TensorView::new(Dtype::F32, s.clone(), b).map(|v| (n.as_str(), v)))
         .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| LearnerError::InvalidNetwork {
-            name: "checkpoint".into(),
-            reason: e.to_string(),
-        })?;
-    safetensors::serialize(views, metadata).map_err(|e| LearnerError::InvalidNetwork {
-        name: "checkpoint".into(),
-        reason: e.to_string(),
-    })
+        .map_err(|e| LearnerError::InvalidNetwork { name: "checkpoint".into(), reason: e.to_string() })?;
+    safetensors::serialize(views, metadata).map_err(|e| LearnerError::InvalidNetwork { name: "checkpoint".into(), reason: e.to_string() })
 }
 
 /// Parses safetensors bytes into CPU f32 tensors; anything but F32 is corruption.
 fn decode_tensors(path: &Path, bytes: &[u8]) -> Result<HashMap<String, Tensor>, LearnerError> {
-    let st =
-        SafeTensors::deserialize(bytes).map_err(|e| corrupt(path, format!("safetensors: {e}")))?;
+    let st = SafeTensors::deserialize(bytes).map_err(|e| corrupt(path, format!("safetensors: {e}")))?;
     let mut out = HashMap::new();
     for (name, view) in st.tensors() {
         if view.dtype() != Dtype::F32 {
-            return Err(corrupt(
-                path,
-                format!("tensor `{name}` is {:?}, expected F32", view.dtype()),
-            ));
+            return Err(corrupt(path, format!("tensor `{name}` is {:?}, expected F32", view.dtype())));
         }
-        let values: Vec<f32> = view
-            .data()
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
+        let values: Vec<f32> = view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
         let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
         out.insert(name, Tensor::from_slice(&values).view(shape.as_slice()));
     }
@@ -219,14 +177,8 @@ pub struct PolicyFile {
 /// Reads a file written by [`export_policy`] (or a checkpoint's `policy.safetensors`).
 pub fn read_policy(path: &Path) -> Result<PolicyFile, LearnerError> {
     let bytes = fs::read(path).map_err(|e| io_err(path, "read", e))?;
-    let (_, header) = SafeTensors::read_metadata(&bytes)
-        .map_err(|e| corrupt(path, format!("safetensors: {e}")))?;
-    let metadata: BTreeMap<String, String> = header
-        .metadata()
-        .clone()
-        .unwrap_or_default()
-        .into_iter()
-        .collect();
+    let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| corrupt(path, format!("safetensors: {e}")))?;
+    let metadata: BTreeMap<String, String> = header.metadata().clone().unwrap_or_default().into_iter().collect();
     if metadata.get("format").map(String::as_str) != Some(POLICY_FORMAT) {
         return Err(corrupt(path, "no `format: mapless-policy` metadata"));
     }
@@ -249,55 +201,30 @@ pub fn read_policy(path: &Path) -> Result<PolicyFile, LearnerError> {
 /// `extra` is a `serde_json::Value`, which cannot hold integers beyond 64 bits: state with
 /// u128s in it (a `rand_pcg::Pcg64`) should go in as a JSON *string*
 /// (`Value::String(serde_json::to_string(&state)?)`).
-pub fn write_checkpoint(
-    dir: &Path,
-    agent: &Agent,
-    extra: &serde_json::Value,
-) -> Result<(), LearnerError> {
+pub fn write_checkpoint(dir: &Path, agent: &Agent, extra: &serde_json::Value) -> Result<(), LearnerError> {
     if dir.exists() {
         return Err(io_err(dir, "create", "already exists"));
     }
     let parent = parent_of(dir);
-    let name = dir
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| io_err(dir, "create", "no directory name"))?;
+    let name = dir.file_name().and_then(|n| n.to_str()).ok_or_else(|| io_err(dir, "create", "no directory name"))?;
     let tmp = parent.join(format!(".{name}.tmp"));
     if tmp.exists() {
         fs::remove_dir_all(&tmp).map_err(|e| io_err(&tmp, "remove stale temporary", e))?;
     }
     fs::create_dir_all(&tmp).map_err(|e| io_err(&tmp, "create", e))?;
 
-    let state = StateFile {
-        config: agent.config().clone(),
-        agent: agent.state_meta(),
-        extra: extra.clone(),
-    };
+    let state = StateFile { config: agent.config().clone(), agent: agent.state_meta(), extra: extra.clone() };
     let state = serde_json::to_vec_pretty(&state).map_err(|e| io_err(dir, "encode state", e))?;
     let tensors = encode_tensors(&agent.state_tensors(), None)?;
     let policy = policy_bytes(agent)?;
     let mut files = BTreeMap::new();
     for (file, bytes) in [(STATE, &state), (TENSORS, &tensors), (POLICY, &policy)] {
         write_synced(&tmp.join(file), bytes)?;
-        files.insert(
-            file.to_string(),
-            FileSum {
-                bytes: bytes.len() as u64,
-                crc32: crc32fast::hash(bytes),
-            },
-        );
+        files.insert(file.to_string(), FileSum { bytes: bytes.len() as u64, crc32: crc32fast::hash(bytes) });
     }
-    let manifest = Manifest {
-        format: FORMAT.into(),
-        format_version: FORMAT_VERSION,
-        algorithm: agent.config().algorithm,
-        obs_dim: agent.obs_dim(),
-        act_dim: agent.act_dim(),
-        updates: agent.updates(),
-        files,
-    };
     let manifest =
-        serde_json::to_vec_pretty(&manifest).map_err(|e| io_err(dir, "encode manifest", e))?;
+        Manifest { format: FORMAT.into(), format_version: FORMAT_VERSION, algorithm: agent.config().algorithm, obs_dim: agent.obs_dim(), act_dim: agent.act_dim(), updates: agent.updates(), files };
+    let manifest = serde_json::to_vec_pretty(&manifest).map_err(|e| io_err(dir, "encode manifest", e))?;
     write_synced(&tmp.join(MANIFEST), &manifest)?;
     sync_dir(&tmp)?;
     fs::rename(&tmp, dir).map_err(|e| io_err(dir, "rename into place", e))?;
@@ -306,23 +233,14 @@ pub fn write_checkpoint(
 
 /// Saves a checkpoint under `root` as `ckpt-<updates>` (see the module docs), points
 /// `LATEST` at it, and prunes all but the newest `keep` (≥ 1) checkpoints. Returns its path.
-pub fn save(
-    root: &Path,
-    agent: &Agent,
-    extra: &serde_json::Value,
-    keep: usize,
-) -> Result<PathBuf, LearnerError> {
+pub fn save(root: &Path, agent: &Agent, extra: &serde_json::Value, keep: usize) -> Result<PathBuf, LearnerError> {
     fs::create_dir_all(root).map_err(|e| io_err(root, "create", e))?;
     // Leftovers of a save that crashed before its rename (one writer per root).
-    for entry in fs::read_dir(root)
-        .map_err(|e| io_err(root, "list", e))?
-        .flatten()
-    {
+    for entry in fs::read_dir(root).map_err(|e| io_err(root, "list", e))?.flatten() {
         let name = entry.file_name();
         let name = name.to_string_lossy();
         if name.starts_with(".ckpt-") && name.ends_with(".tmp") {
-            fs::remove_dir_all(entry.path())
-                .map_err(|e| io_err(&entry.path(), "remove stale temporary", e))?;
+            fs::remove_dir_all(entry.path()).map_err(|e| io_err(&entry.path(), "remove stale temporary", e))?;
         }
     }
     let base = format!("ckpt-{:012}", agent.updates());
@@ -336,11 +254,7 @@ pub fn save(
     write_checkpoint(&dir, agent, extra)?;
     crate::weights::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes())?;
 
-    let mut all: Vec<String> = fs::read_dir(root)
-        .map_err(|e| io_err(root, "list", e))?
-        .filter_map(|e| e.ok()?.file_name().into_string().ok())
-        .filter(|n| n.starts_with("ckpt-"))
-        .collect();
+    let mut all: Vec<String> = fs::read_dir(root).map_err(|e| io_err(root, "list", e))?.filter_map(|e| e.ok()?.file_name().into_string().ok()).filter(|n| n.starts_with("ckpt-")).collect();
     all.sort();
     let keep = keep.max(1);
     for old in all.iter().take(all.len().saturating_sub(keep)) {
@@ -366,12 +280,7 @@ pub fn resolve(path: &Path) -> Result<PathBuf, LearnerError> {
             }
             Ok(path.join(name))
         }
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(corrupt(
-            path,
-            format!(
-                "neither `{MANIFEST}` nor `{LATEST}`: not a checkpoint, or one never completed"
-            ),
-        )),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(corrupt(path, format!("neither `{MANIFEST}` nor `{LATEST}`: not a checkpoint, or one never completed"))),
         Err(e) => Err(io_err(&latest, "read", e)),
     }
 }
@@ -393,76 +302,40 @@ fn read_verified(path: &Path) -> Result<Loaded, LearnerError> {
     })?;
     // Format and version first, leniently, so a future layout reads as a version mismatch
     // rather than as corruption.
-    let head: serde_json::Value =
-        serde_json::from_slice(&raw).map_err(|e| corrupt(&mpath, format!("not JSON: {e}")))?;
+    let head: serde_json::Value = serde_json::from_slice(&raw).map_err(|e| corrupt(&mpath, format!("not JSON: {e}")))?;
     if head.get("format").and_then(|f| f.as_str()) != Some(FORMAT) {
         return Err(corrupt(&mpath, format!("`format` is not `{FORMAT}`")));
     }
     let version = head.get("format_version").and_then(|v| v.as_u64());
     if version != Some(u64::from(FORMAT_VERSION)) {
-        return Err(mismatch(
-            &dir,
-            "format version",
-            FORMAT_VERSION,
-            version.map_or("missing".into(), |v| v.to_string()),
-        ));
+        return Err(mismatch(&dir, "format version", FORMAT_VERSION, version.map_or("missing".into(), |v| v.to_string())));
     }
-    let manifest: Manifest =
-        serde_json::from_value(head).map_err(|e| corrupt(&mpath, format!("manifest: {e}")))?;
+    let manifest: Manifest = serde_json::from_value(head).map_err(|e| corrupt(&mpath, format!("manifest: {e}")))?;
     let mut contents = HashMap::new();
     for file in [STATE, TENSORS, POLICY] {
-        let sum = manifest
-            .files
-            .get(file)
-            .ok_or_else(|| corrupt(&mpath, format!("lists no `{file}`")))?;
+        let sum = manifest.files.get(file).ok_or_else(|| corrupt(&mpath, format!("lists no `{file}`")))?;
         let fpath = dir.join(file);
         let bytes = fs::read(&fpath).map_err(|e| match e.kind() {
             std::io::ErrorKind::NotFound => corrupt(&fpath, "missing"),
             _ => io_err(&fpath, "read", e),
         })?;
         if bytes.len() as u64 != sum.bytes {
-            let how = if (bytes.len() as u64) < sum.bytes {
-                "truncated: "
-            } else {
-                ""
-            };
-            return Err(corrupt(
-                &fpath,
-                format!(
-                    "{how}{} bytes, the manifest says {}",
-                    bytes.len(),
-                    sum.bytes
-                ),
-            ));
+            let how = if (bytes.len() as u64) < sum.bytes { "truncated: " } else { "" };
+            return Err(corrupt(&fpath, format!("{how}{} bytes, the manifest says {}", bytes.len(), sum.bytes)));
         }
         let crc = crc32fast::hash(&bytes);
         if crc != sum.crc32 {
-            return Err(corrupt(
-                &fpath,
-                format!(
-                    "checksum mismatch (stored {:#010x}, computed {crc:#010x})",
-                    sum.crc32
-                ),
-            ));
+            return Err(corrupt(&fpath, format!("checksum mismatch (stored {:#010x}, computed {crc:#010x})", sum.crc32)));
         }
         contents.insert(file, bytes);
     }
     let spath = dir.join(STATE);
-    let state: StateFile = serde_json::from_slice(&contents[STATE])
-        .map_err(|e| corrupt(&spath, format!("state: {e}")))?;
+    let state: StateFile = serde_json::from_slice(&contents[STATE]).map_err(|e| corrupt(&spath, format!("state: {e}")))?;
     if state.config.algorithm != manifest.algorithm {
-        return Err(corrupt(
-            &spath,
-            "config's algorithm differs from the manifest's",
-        ));
+        return Err(corrupt(&spath, "config's algorithm differs from the manifest's"));
     }
     let tensors = decode_tensors(&dir.join(TENSORS), &contents[TENSORS])?;
-    Ok(Loaded {
-        dir,
-        manifest,
-        state,
-        tensors,
-    })
+    Ok(Loaded { dir, manifest, state, tensors })
 }
 
 /// Loads the checkpoint at `path` (a checkpoint directory, or a root with `LATEST`) into a
@@ -475,9 +348,7 @@ pub fn load(path: &Path, device: Option<&str>) -> Result<(Agent, serde_json::Val
         cfg.device = d.to_string();
     }
     let mut agent = Agent::new(&cfg, l.manifest.obs_dim, l.manifest.act_dim)?;
-    agent
-        .restore_state(&l.tensors, l.state.agent)
-        .map_err(|reason| corrupt(&l.dir, reason))?;
+    agent.restore_state(&l.tensors, l.state.agent).map_err(|reason| corrupt(&l.dir, reason))?;
     Ok((agent, l.state.extra))
 }
 
@@ -489,12 +360,7 @@ pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, Lear
     let l = read_verified(path)?;
     let (m, have) = (&l.manifest, agent.config());
     if m.algorithm != have.algorithm {
-        return Err(mismatch(
-            &l.dir,
-            "algorithm",
-            have.algorithm.as_str(),
-            m.algorithm.as_str(),
-        ));
+        return Err(mismatch(&l.dir, "algorithm", have.algorithm.as_str(), m.algorithm.as_str()));
     }
     if m.obs_dim != agent.obs_dim() {
         return Err(mismatch(&l.dir, "obs_dim", agent.obs_dim(), m.obs_dim));
@@ -503,15 +369,8 @@ pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, Lear
         return Err(mismatch(&l.dir, "act_dim", agent.act_dim(), m.act_dim));
     }
     if l.state.config.hidden_width != have.hidden_width {
-        return Err(mismatch(
-            &l.dir,
-            "hidden_width",
-            have.hidden_width,
-            l.state.config.hidden_width,
-        ));
+        return Err(mismatch(&l.dir, "hidden_width", have.hidden_width, l.state.config.hidden_width));
     }
-    agent
-        .restore_state(&l.tensors, l.state.agent)
-        .map_err(|reason| mismatch(&l.dir, "tensors", "this agent's layout", reason))?;
+    agent.restore_state(&l.tensors, l.state.agent).map_err(|reason| mismatch(&l.dir, "tensors", "this agent's layout", reason))?;
     Ok(l.state.extra)
 }

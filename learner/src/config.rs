@@ -56,10 +56,7 @@ impl std::str::FromStr for AlgorithmKind {
             "ddpg" => Ok(Self::Ddpg),
             "td3" => Ok(Self::Td3),
             "sac" => Ok(Self::Sac),
-            other => Err(LearnerError::InvalidConfig {
-                field: "algorithm",
-                reason: format!("is `{other}`; expected `ddpg`, `td3` or `sac`"),
-            }),
+            other => Err(LearnerError::InvalidConfig { field: "algorithm", reason: format!("is `{other}`; expected `ddpg`, `td3` or `sac`") }),
         }
     }
 }
@@ -156,11 +153,7 @@ pub struct AdamConfig {
 
 impl Default for AdamConfig {
     fn default() -> Self {
-        Self {
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-        }
+        Self { beta1: 0.9, beta2: 0.999, eps: 1e-8 }
     }
 }
 
@@ -191,29 +184,9 @@ impl ExplorationNoise {
     fn validate(&self, field: &'static str) -> Result<(), LearnerError> {
         let ok = match *self {
             Self::Gaussian { sigma } => sigma.is_finite() && sigma >= 0.0,
-            Self::OrnsteinUhlenbeck {
-                theta,
-                sigma,
-                mean,
-                dt,
-            } => {
-                theta.is_finite()
-                    && theta >= 0.0
-                    && sigma.is_finite()
-                    && sigma >= 0.0
-                    && mean.is_finite()
-                    && dt.is_finite()
-                    && dt > 0.0
-            }
+            Self::OrnsteinUhlenbeck { theta, sigma, mean, dt } => theta.is_finite() && theta >= 0.0 && sigma.is_finite() && sigma >= 0.0 && mean.is_finite() && dt.is_finite() && dt > 0.0,
         };
-        if ok {
-            Ok(())
-        } else {
-            Err(LearnerError::InvalidConfig {
-                field,
-                reason: format!("{self:?}: σ, θ must be finite and ≥ 0, dt > 0"),
-            })
-        }
+        if ok { Ok(()) } else { Err(LearnerError::InvalidConfig { field, reason: format!("{self:?}: σ, θ must be finite and ≥ 0, dt > 0") }) }
     }
 }
 
@@ -228,14 +201,7 @@ pub struct DdpgConfig {
 
 impl Default for DdpgConfig {
     fn default() -> Self {
-        Self {
-            exploration: ExplorationNoise::OrnsteinUhlenbeck {
-                theta: 0.15,
-                sigma: 0.3,
-                mean: 0.0,
-                dt: 0.1,
-            },
-        }
+        Self { exploration: ExplorationNoise::OrnsteinUhlenbeck { theta: 0.15, sigma: 0.3, mean: 0.0, dt: 0.1 } }
     }
 }
 
@@ -258,12 +224,7 @@ pub struct Td3Config {
 
 impl Default for Td3Config {
     fn default() -> Self {
-        Self {
-            exploration: ExplorationNoise::Gaussian { sigma: 0.32 },
-            target_noise_std: 0.45,
-            target_noise_clip: 0.5,
-            policy_delay: 2,
-        }
+        Self { exploration: ExplorationNoise::Gaussian { sigma: 0.32 }, target_noise_std: 0.45, target_noise_clip: 0.5, policy_delay: 2 }
     }
 }
 
@@ -292,31 +253,19 @@ pub struct SacConfig {
 
 impl Default for SacConfig {
     fn default() -> Self {
-        Self {
-            initial_alpha: 1.0,
-            alpha_lr: 3e-4,
-            autotune_alpha: true,
-            target_entropy: None,
-            log_std_min: -20.0,
-            log_std_max: 2.0,
-        }
+        Self { initial_alpha: 1.0, alpha_lr: 3e-4, autotune_alpha: true, target_entropy: None, log_std_min: -20.0, log_std_max: 2.0 }
     }
 }
 
 impl LearnerConfig {
     /// Checks every field's domain; the error names the field.
     pub fn validate(&self) -> Result<(), LearnerError> {
-        let bad = |field: &'static str, reason: String| {
-            Err(LearnerError::InvalidConfig { field, reason })
-        };
+        let bad = |field: &'static str, reason: String| Err(LearnerError::InvalidConfig { field, reason });
         let unit = |x: f64| x.is_finite() && (0.0..=1.0).contains(&x);
         let positive = |x: f64| x.is_finite() && x > 0.0;
         self.device.parse::<crate::Device>()?;
         if self.hidden_width < 1 {
-            return bad(
-                "hidden_width",
-                format!("is {}; must be ≥ 1", self.hidden_width),
-            );
+            return bad("hidden_width", format!("is {}; must be ≥ 1", self.hidden_width));
         }
         if !unit(self.gamma) {
             return bad("gamma", format!("is {}; must be in [0, 1]", self.gamma));
@@ -324,11 +273,7 @@ impl LearnerConfig {
         if !unit(self.tau) {
             return bad("tau", format!("is {}; must be in [0, 1]", self.tau));
         }
-        for (field, lr) in [
-            ("actor_lr", self.actor_lr),
-            ("critic_lr", self.critic_lr),
-            ("sac.alpha_lr", self.sac.alpha_lr),
-        ] {
+        for (field, lr) in [("actor_lr", self.actor_lr), ("critic_lr", self.critic_lr), ("sac.alpha_lr", self.sac.alpha_lr)] {
             if !positive(lr) {
                 return bad(field, format!("is {lr}; must be finite and > 0"));
             }
@@ -336,13 +281,10 @@ impl LearnerConfig {
         if self.batch_size == 0 {
             return bad("batch_size", "is 0; must be ≥ 1".into());
         }
-        if let Some(c) = self.grad_clip_norm {
-            if !positive(c) {
-                return bad(
-                    "grad_clip_norm",
-                    format!("is {c}; must be finite and > 0, or null"),
-                );
-            }
+        if let Some(c) = self.grad_clip_norm
+            && !positive(c)
+        {
+            return bad("grad_clip_norm", format!("is {c}; must be finite and > 0, or null"));
         }
         let a = &self.adam;
         if !(a.beta1.is_finite() && (0.0..1.0).contains(&a.beta1)) {
@@ -358,46 +300,25 @@ impl LearnerConfig {
         self.td3.exploration.validate("td3.exploration")?;
         let t = &self.td3;
         if !(t.target_noise_std.is_finite() && t.target_noise_std >= 0.0) {
-            return bad(
-                "td3.target_noise_std",
-                format!("is {}; must be finite and ≥ 0", t.target_noise_std),
-            );
+            return bad("td3.target_noise_std", format!("is {}; must be finite and ≥ 0", t.target_noise_std));
         }
         if !(t.target_noise_clip.is_finite() && t.target_noise_clip >= 0.0) {
-            return bad(
-                "td3.target_noise_clip",
-                format!("is {}; must be finite and ≥ 0", t.target_noise_clip),
-            );
+            return bad("td3.target_noise_clip", format!("is {}; must be finite and ≥ 0", t.target_noise_clip));
         }
         if t.policy_delay == 0 {
             return bad("td3.policy_delay", "is 0; must be ≥ 1".into());
         }
         let s = &self.sac;
         if !positive(s.initial_alpha) {
-            return bad(
-                "sac.initial_alpha",
-                format!("is {}; must be finite and > 0", s.initial_alpha),
-            );
+            return bad("sac.initial_alpha", format!("is {}; must be finite and > 0", s.initial_alpha));
         }
-        if let Some(h) = s.target_entropy {
-            if !h.is_finite() {
-                return bad(
-                    "sac.target_entropy",
-                    format!("is {h}; must be finite or null"),
-                );
-            }
-        }
-        if !(s.log_std_min.is_finite()
-            && s.log_std_max.is_finite()
-            && s.log_std_min < s.log_std_max)
+        if let Some(h) = s.target_entropy
+            && !h.is_finite()
         {
-            return bad(
-                "sac.log_std_min",
-                format!(
-                    "and log_std_max are {} and {}; need finite min < max",
-                    s.log_std_min, s.log_std_max
-                ),
-            );
+            return bad("sac.target_entropy", format!("is {h}; must be finite or null"));
+        }
+        if !(s.log_std_min.is_finite() && s.log_std_max.is_finite() && s.log_std_min < s.log_std_max) {
+            return bad("sac.log_std_min", format!("and log_std_max are {} and {}; need finite min < max", s.log_std_min, s.log_std_max));
         }
         Ok(())
     }
@@ -410,44 +331,17 @@ mod tests {
     #[test]
     fn defaults_are_the_papers_table_one() {
         let c = LearnerConfig::default();
-        assert_eq!(
-            (
-                c.gamma,
-                c.actor_lr,
-                c.critic_lr,
-                c.tau,
-                c.batch_size
-            ),
-            (0.995, 5e-5, 5e-4, 0.001, 128)
-        );
+        assert_eq!((c.gamma, c.actor_lr, c.critic_lr, c.tau, c.batch_size), (0.995, 5e-5, 5e-4, 0.001, 128));
         assert_eq!((c.hidden_width, c.grad_clip_norm), (256, Some(1.0)));
-        assert_eq!(
-            (c.sac.initial_alpha, c.sac.alpha_lr, c.sac.target_entropy),
-            (1.0, 3e-4, None)
-        );
-        assert_eq!(
-            (
-                c.td3.target_noise_std,
-                c.td3.target_noise_clip,
-                c.td3.policy_delay
-            ),
-            (0.45, 0.5, 2)
-        );
-        assert!(matches!(
-            c.ddpg.exploration,
-            ExplorationNoise::OrnsteinUhlenbeck {
-                theta: 0.15,
-                sigma: 0.3,
-                ..
-            }
-        ));
+        assert_eq!((c.sac.initial_alpha, c.sac.alpha_lr, c.sac.target_entropy), (1.0, 3e-4, None));
+        assert_eq!((c.td3.target_noise_std, c.td3.target_noise_clip, c.td3.policy_delay), (0.45, 0.5, 2));
+        assert!(matches!(c.ddpg.exploration, ExplorationNoise::OrnsteinUhlenbeck { theta: 0.15, sigma: 0.3, .. }));
         c.validate().unwrap();
     }
 
     #[test]
     fn a_partial_json_config_keeps_the_other_defaults_and_typos_are_refused() {
-        let c: LearnerConfig =
-            serde_json::from_str(r#"{"algorithm":"td3","td3":{"policy_delay":3}}"#).unwrap();
+        let c: LearnerConfig = serde_json::from_str(r#"{"algorithm":"td3","td3":{"policy_delay":3}}"#).unwrap();
         assert_eq!(c.algorithm, AlgorithmKind::Td3);
         assert_eq!(c.td3.policy_delay, 3);
         assert_eq!(c.td3.target_noise_std, 0.45);
@@ -462,17 +356,9 @@ mod tests {
         assert!(c.validate().unwrap_err().to_string().contains("`gamma`"));
         let mut c = LearnerConfig::default();
         c.td3.policy_delay = 0;
-        assert!(
-            c.validate()
-                .unwrap_err()
-                .to_string()
-                .contains("`td3.policy_delay`")
-        );
+        assert!(c.validate().unwrap_err().to_string().contains("`td3.policy_delay`"));
         let mut c = LearnerConfig::default();
         c.device = "tpu".into();
-        assert!(matches!(
-            c.validate().unwrap_err(),
-            LearnerError::InvalidDevice { .. }
-        ));
+        assert!(matches!(c.validate().unwrap_err(), LearnerError::InvalidDevice { .. }));
     }
 }

@@ -63,21 +63,7 @@ pub fn gemm(ta: bool, tb: bool, m: usize, n: usize, k: usize, a: &[f32], b: &[f3
     // SAFETY: the pointers come from slices at least as long as the asserted sizes, the
     // scalars live on this stack frame, and sgemm_ reads/writes only within those bounds.
     unsafe {
-        sgemm_(
-            (&ta_f as *const u8).cast(),
-            (&tb_f as *const u8).cast(),
-            &dims[0],
-            &dims[1],
-            &dims[2],
-            &alpha,
-            b.as_ptr(),
-            &dims[3],
-            a.as_ptr(),
-            &dims[4],
-            &beta,
-            c.as_mut_ptr(),
-            &dims[5],
-        );
+        sgemm_((&ta_f as *const u8).cast(), (&tb_f as *const u8).cast(), &dims[0], &dims[1], &dims[2], &alpha, b.as_ptr(), &dims[3], a.as_ptr(), &dims[4], &beta, c.as_mut_ptr(), &dims[5]);
     }
 }
 
@@ -154,17 +140,7 @@ impl Body {
     /// gradients. With two `lanes`, the hidden layer's weight gradient and input gradient (the
     /// two hidden-by-hidden products) run side by side.
     #[allow(clippy::too_many_arguments)]
-    pub fn backward(
-        &self,
-        p: &[f32],
-        x: &[f32],
-        act: &Acts,
-        dy: &[f32],
-        grad: Option<&mut [f32]>,
-        dx: Option<(&mut [f32], usize)>,
-        scratch: &mut Scratch,
-        lanes: &Lanes,
-    ) {
+    pub fn backward(&self, p: &[f32], x: &[f32], act: &Acts, dy: &[f32], grad: Option<&mut [f32]>, dx: Option<(&mut [f32], usize)>, scratch: &mut Scratch, lanes: &Lanes) {
         let rows = act.rows;
         let h = self.hidden();
         scratch.d2.resize(rows * h, 0.0);
@@ -177,10 +153,7 @@ impl Body {
         let (d2, d1) = (&scratch.d2, &mut scratch.d1);
         match grad.as_deref_mut() {
             Some(g) => {
-                lanes.join(
-                    || self.weight_grads(1, &act.h1, d2, rows, Some(g)),
-                    || self.input_grad(1, p, d2, rows, d1, 0),
-                );
+                lanes.join(|| self.weight_grads(1, &act.h1, d2, rows, Some(g)), || self.input_grad(1, p, d2, rows, d1, 0));
             }
             None => self.input_grad(1, p, d2, rows, d1, 0),
         }
@@ -439,9 +412,7 @@ mod tests {
     #[test]
     fn gemm_matches_libtorch_in_every_transpose() {
         let (m, n, k) = (5usize, 3usize, 4usize);
-        let t = |r: usize, c: usize, s: f32| {
-            Tensor::from_slice(&(0..r * c).map(|i| (i as f32 * s).sin()).collect::<Vec<_>>()).view([r as i64, c as i64])
-        };
+        let t = |r: usize, c: usize, s: f32| Tensor::from_slice(&(0..r * c).map(|i| (i as f32 * s).sin()).collect::<Vec<_>>()).view([r as i64, c as i64]);
         for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
             let a = if ta { t(k, m, 0.7) } else { t(m, k, 0.7) };
             let b = if tb { t(n, k, 1.3) } else { t(k, n, 1.3) };
@@ -457,9 +428,7 @@ mod tests {
     fn forward_and_backward_match_autograd_for_both_layouts() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
         let (rows, input, hidden) = (6usize, 5usize, 8usize);
-        let x = Tensor::from_slice(&(0..rows * input).map(|i| (i as f32 * 0.37).cos()).collect::<Vec<_>>())
-            .view([rows as i64, input as i64])
-            .set_requires_grad(true);
+        let x = Tensor::from_slice(&(0..rows * input).map(|i| (i as f32 * 0.37).cos()).collect::<Vec<_>>()).view([rows as i64, input as i64]).set_requires_grad(true);
         let dy_of = |o: usize| (0..rows * o).map(|i| (i as f32 * 0.11).sin()).collect::<Vec<f32>>();
         // The actor layout.
         let set = ParamSet::new(mlp_specs("a", input as i64, hidden as i64, 3, &mut rng), tch::Device::Cpu).unwrap();
@@ -467,10 +436,7 @@ mod tests {
         // The second network of a two-network critic stack.
         let stack = ParamSet::new(stacked_mlp_specs("c", 2, input as i64, hidden as i64, 1, &mut rng), tch::Device::Cpu).unwrap();
         let second = Body::stacked(1, 2, input, hidden, 1);
-        for ((set, body, pick), lanes) in [(&set, body, None), (&stack, second, Some(1i64))]
-            .into_iter()
-            .flat_map(|case| [(case, Lanes::default()), (case, Lanes::started())])
-        {
+        for ((set, body, pick), lanes) in [(&set, body, None), (&stack, second, Some(1i64))].into_iter().flat_map(|case| [(case, Lanes::default()), (case, Lanes::started())]) {
             let y = match pick {
                 None => mlp_forward(set.params(), &x),
                 Some(j) => stacked_mlp_forward(set.params(), &x, true).get(j),

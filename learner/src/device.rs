@@ -35,9 +35,7 @@ impl Device {
             Self::Cpu => Ok(()),
             Self::Cuda(index) => {
                 if !tch::Cuda::is_available() {
-                    return Err(LearnerError::CudaUnavailable {
-                        spec: spec.trim().to_owned(),
-                    });
+                    return Err(LearnerError::CudaUnavailable { spec: spec.trim().to_owned() });
                 }
                 // device_count is an i64 in tch; a negative count would be a libtorch bug and
                 // reads as "none".
@@ -64,19 +62,13 @@ impl FromStr for Device {
 
     /// Syntax only: does not ask libtorch whether the device exists.
     fn from_str(spec: &str) -> Result<Self, Self::Err> {
-        let invalid = |reason: &str| LearnerError::InvalidDevice {
-            spec: spec.to_owned(),
-            reason: reason.to_owned(),
-        };
+        let invalid = |reason: &str| LearnerError::InvalidDevice { spec: spec.to_owned(), reason: reason.to_owned() };
         let lower = spec.trim().to_ascii_lowercase();
         match lower.as_str() {
             "cpu" => Ok(Self::Cpu),
             "cuda" => Ok(Self::Cuda(0)),
             other => match other.strip_prefix("cuda:") {
-                Some(ordinal) => ordinal
-                    .parse::<usize>()
-                    .map(Self::Cuda)
-                    .map_err(|_| invalid("the CUDA ordinal must be a non-negative integer")),
+                Some(ordinal) => ordinal.parse::<usize>().map(Self::Cuda).map_err(|_| invalid("the CUDA ordinal must be a non-negative integer")),
                 None => Err(invalid("unknown device")),
             },
         }
@@ -106,19 +98,10 @@ mod tests {
 
     #[test]
     fn syntax_rejects_unknown_devices_and_bad_ordinals_with_the_accepted_forms() {
-        for bad in [
-            "", "gpu", "mps", "cuda:", "cuda:-1", "cuda:x", "cuda:1:2", "cpu:0",
-        ] {
+        for bad in ["", "gpu", "mps", "cuda:", "cuda:-1", "cuda:x", "cuda:1:2", "cpu:0"] {
             let err = bad.parse::<Device>().unwrap_err();
-            assert!(
-                matches!(err, LearnerError::InvalidDevice { .. }),
-                "{bad:?} gave {err:?}"
-            );
-            assert!(
-                err.to_string()
-                    .contains("expected `cpu`, `cuda` or `cuda:N`"),
-                "{err}"
-            );
+            assert!(matches!(err, LearnerError::InvalidDevice { .. }), "{bad:?} gave {err:?}");
+            assert!(err.to_string().contains("expected `cpu`, `cuda` or `cuda:N`"), "{err}");
         }
     }
 

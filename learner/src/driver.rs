@@ -208,13 +208,13 @@ impl Driver {
         }
         self.last_stats = stats;
         let n = self.agent.updates();
-        if n % self.cfg.publish_every == 0 {
+        if n.is_multiple_of(self.cfg.publish_every) {
             self.publish()?;
         }
-        if self.cfg.checkpoint_every > 0 && n % self.cfg.checkpoint_every == 0 && self.checkpoint_root.is_some() {
+        if self.cfg.checkpoint_every > 0 && n.is_multiple_of(self.cfg.checkpoint_every) && self.checkpoint_root.is_some() {
             self.checkpoint()?;
         }
-        if n % self.cfg.metrics_every == 0 {
+        if n.is_multiple_of(self.cfg.metrics_every) {
             self.report_metrics(n);
         }
         Ok(true)
@@ -259,7 +259,7 @@ impl Driver {
             self.try_step(Duration::from_millis(200))?;
         }
         let updates = self.agent.updates() - first;
-        if updates > 0 && self.agent.updates() % self.cfg.publish_every != 0 {
+        if updates > 0 && !self.agent.updates().is_multiple_of(self.cfg.publish_every) {
             self.publish()?;
         }
         let checkpoint = if self.checkpoint_root.is_some() { Some(self.checkpoint()?) } else { None };

@@ -110,7 +110,9 @@ impl std::fmt::Debug for Lanes {
 }
 
 impl Lanes {
-    /// One lane, never a helper.
+    /// One lane, never a helper. A const on purpose: every use is a fresh value with its own
+    /// `busy` cell.
+    #[allow(clippy::declare_interior_mutable_const)]
     pub const ONE: Lanes = Lanes { helper: None, configured: true, busy: Cell::new(false) };
 
     /// Starts the helper the first time, when libtorch has ≥ 2 intra-op threads and MKL is
@@ -135,12 +137,7 @@ impl Lanes {
 
     fn start(&mut self) {
         let Some(set_local) = mkl_set_local() else { return };
-        let slot = Arc::new(Slot {
-            state: AtomicU8::new(IDLE),
-            job: UnsafeCell::new(None),
-            panic: UnsafeCell::new(None),
-            caller: UnsafeCell::new(None),
-        });
+        let slot = Arc::new(Slot { state: AtomicU8::new(IDLE), job: UnsafeCell::new(None), panic: UnsafeCell::new(None), caller: UnsafeCell::new(None) });
         let s = Arc::clone(&slot);
         let spawned = std::thread::Builder::new().name("learner-lane".into()).spawn(move || {
             set_local_blas_threads(set_local, 1);
@@ -324,9 +321,7 @@ mod tests {
     #[test]
     fn a_panic_on_the_helper_reaches_the_caller_and_the_lanes_keep_working() {
         let lanes = two_lanes();
-        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            lanes.join(|| 1, || -> u32 { panic!("boom on the helper") })
-        }));
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lanes.join(|| 1, || -> u32 { panic!("boom on the helper") })));
         let payload = caught.expect_err("the helper's panic comes back");
         assert_eq!(payload.downcast_ref::<&str>(), Some(&"boom on the helper"));
         assert_eq!(lanes.join(|| 2, || 3), (2, 3));

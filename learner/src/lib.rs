@@ -9,6 +9,9 @@
 //! Building needs libtorch 2.13.0: run `scripts/setup-torch.sh` once; `.cargo/config.toml`
 //! points torch-sys at it and `build.rs` bakes its path into test binaries as an rpath.
 
+// `Lanes::ONE` is a const with a `Cell` on purpose: each use is a fresh one-lane value.
+#![allow(clippy::borrow_interior_mutable_const)]
+
 mod device;
 mod error;
 mod malloc;
@@ -19,12 +22,12 @@ mod threads;
 pub mod algo;
 pub mod batch;
 pub mod ceiling;
-mod cpu;
-pub mod lanes;
 pub mod checkpoint;
-pub mod driver;
 pub mod config;
+mod cpu;
+pub mod driver;
 pub mod envs;
+pub mod lanes;
 pub mod optim;
 
 // Around the algorithms: replay sources, published weights, metrics files.

@@ -52,11 +52,7 @@ pub struct MlpBuilder {
 impl Mlp {
     /// Starts an `input_dim → hidden → hidden → output_dim` network.
     pub fn builder(input_dim: i64, output_dim: i64) -> MlpBuilder {
-        MlpBuilder {
-            input_dim,
-            hidden_width: DEFAULT_HIDDEN_WIDTH,
-            output_dim,
-        }
+        MlpBuilder { input_dim, hidden_width: DEFAULT_HIDDEN_WIDTH, output_dim }
     }
 
     /// Width of the network's input.
@@ -90,16 +86,9 @@ impl MlpBuilder {
     /// (U(±1/√fan_in)); biases U(±1/√fan_in) as in PyTorch. The paper (MATLAB) does not say;
     /// choosing per-layer initialisers is left to the algorithms.
     pub fn build(self, path: &nn::Path) -> Result<Mlp, LearnerError> {
-        for (what, value) in [
-            ("input_dim", self.input_dim),
-            ("hidden_width", self.hidden_width),
-            ("output_dim", self.output_dim),
-        ] {
+        for (what, value) in [("input_dim", self.input_dim), ("hidden_width", self.hidden_width), ("output_dim", self.output_dim)] {
             if value < 1 {
-                return Err(LearnerError::InvalidNetwork {
-                    name: path.components().collect::<Vec<_>>().join("."),
-                    reason: format!("{what} must be at least 1, got {value}"),
-                });
+                return Err(LearnerError::InvalidNetwork { name: path.components().collect::<Vec<_>>().join("."), reason: format!("{what} must be at least 1, got {value}") });
             }
         }
         let config = nn::LinearConfig::default();
@@ -117,11 +106,7 @@ impl MlpBuilder {
 impl nn::Module for Mlp {
     /// `[batch, input_dim] → [batch, output_dim]`.
     fn forward(&self, xs: &Tensor) -> Tensor {
-        xs.apply(&self.l0)
-            .relu()
-            .apply(&self.l1)
-            .relu()
-            .apply(&self.out)
+        xs.apply(&self.l0).relu().apply(&self.l1).relu().apply(&self.out)
     }
 }
 
@@ -132,15 +117,9 @@ mod tests {
     #[test]
     fn zero_sized_layers_are_an_error_naming_the_network() {
         let vs = nn::VarStore::new(tch::Device::Cpu);
-        let err = Mlp::builder(19, 1)
-            .hidden_width(0)
-            .build(&(vs.root() / "critic"))
-            .unwrap_err();
+        let err = Mlp::builder(19, 1).hidden_width(0).build(&(vs.root() / "critic")).unwrap_err();
         assert!(err.to_string().contains("`critic`"), "{err}");
-        assert!(
-            err.to_string().contains("hidden_width must be at least 1"),
-            "{err}"
-        );
+        assert!(err.to_string().contains("hidden_width must be at least 1"), "{err}");
         assert!(vs.variables().is_empty(), "nothing is created on error");
     }
 }
@@ -181,33 +160,21 @@ pub struct ParamSet {
 impl ParamSet {
     /// Lays out `specs` (name, shape, initial values in row-major order) in one buffer on
     /// `device`. Value counts must match the shapes (checked).
-    pub fn new(
-        specs: Vec<(String, Vec<i64>, Vec<f32>)>,
-        device: tch::Device,
-    ) -> Result<Self, LearnerError> {
+    pub fn new(specs: Vec<(String, Vec<i64>, Vec<f32>)>, device: tch::Device) -> Result<Self, LearnerError> {
         let mut values = Vec::new();
         let mut names = Vec::with_capacity(specs.len());
         let mut shapes = Vec::with_capacity(specs.len());
         for (name, shape, v) in specs {
             let numel: i64 = shape.iter().product();
             if usize::try_from(numel).ok() != Some(v.len()) {
-                return Err(LearnerError::InvalidNetwork {
-                    name,
-                    reason: format!("shape {shape:?} needs {numel} values, got {}", v.len()),
-                });
+                return Err(LearnerError::InvalidNetwork { name, reason: format!("shape {shape:?} needs {numel} values, got {}", v.len()) });
             }
             values.extend_from_slice(&v);
             names.push(name);
             shapes.push(shape);
         }
         let flat = Tensor::from_slice(&values).to_device(device);
-        let mut set = Self {
-            flat,
-            names,
-            shapes,
-            params: Vec::new(),
-            frozen: Vec::new(),
-        };
+        let mut set = Self { flat, names, shapes, params: Vec::new(), frozen: Vec::new() };
         (set.params, set.frozen) = set.make_views();
         Ok(set)
     }
@@ -223,13 +190,7 @@ impl ParamSet {
                 None => n.clone(),
             })
             .collect();
-        let mut set = Self {
-            flat: self.flat.detach().copy(),
-            names,
-            shapes: self.shapes.clone(),
-            params: Vec::new(),
-            frozen: Vec::new(),
-        };
+        let mut set = Self { flat: self.flat.detach().copy(), names, shapes: self.shapes.clone(), params: Vec::new(), frozen: Vec::new() };
         (set.params, set.frozen) = set.make_views();
         set
     }
@@ -312,11 +273,7 @@ impl ParamSet {
 
     /// `(name, CPU f32 copy)` for every parameter.
     pub fn named_cpu(&self) -> Vec<(String, Tensor)> {
-        self.names
-            .iter()
-            .zip(&self.params)
-            .map(|(n, p)| (n.clone(), p.detach().to(tch::Device::Cpu).copy()))
-            .collect()
+        self.names.iter().zip(&self.params).map(|(n, p)| (n.clone(), p.detach().to(tch::Device::Cpu).copy())).collect()
     }
 
     /// Overwrites the parameter called `name` with `value` (same shape). `Ok(false)` when
@@ -326,19 +283,11 @@ impl ParamSet {
             return Ok(false);
         };
         if value.size() != self.shapes[i] {
-            return Err(format!(
-                "tensor `{name}` has shape {:?}, this network needs {:?}",
-                value.size(),
-                self.shapes[i]
-            ));
+            return Err(format!("tensor `{name}` has shape {:?}, this network needs {:?}", value.size(), self.shapes[i]));
         }
         let _guard = tch::no_grad_guard();
         let mut p = self.params[i].shallow_clone();
-        p.copy_(
-            &value
-                .to_kind(tch::Kind::Float)
-                .to_device(self.flat.device()),
-        );
+        p.copy_(&value.to_kind(tch::Kind::Float).to_device(self.flat.device()));
         Ok(true)
     }
 
@@ -349,10 +298,7 @@ impl ParamSet {
         for (name, shape) in self.names.iter().zip(&self.shapes) {
             let t = lookup(name).ok_or_else(|| format!("tensor `{name}` is missing"))?;
             if &t.size() != shape {
-                return Err(format!(
-                    "tensor `{name}` has shape {:?}, this network needs {shape:?}",
-                    t.size()
-                ));
+                return Err(format!("tensor `{name}` has shape {:?}, this network needs {shape:?}", t.size()));
             }
             found.push(t);
         }
@@ -370,37 +316,17 @@ impl ParamSet {
 /// U(−1/√fan_in, 1/√fan_in) (`kaiming_uniform_(a=√5)` reduces to this bound).
 fn linear_init(rng: &mut impl rand::Rng, fan_in: i64, count: i64) -> Vec<f32> {
     let bound = 1.0 / (fan_in as f64).sqrt();
-    (0..count)
-        .map(|_| rng.random_range(-bound..bound) as f32)
-        .collect()
+    (0..count).map(|_| rng.random_range(-bound..bound) as f32).collect()
 }
 
 /// Parameter specs of one `input → hidden → hidden → output` ReLU MLP under `prefix`, in
 /// PyTorch layout (weights `[out, in]`): `{prefix}.l0.weight`, `{prefix}.l0.bias`, … — the
 /// names of the module docs. Initialised as PyTorch's `nn.Linear`.
-pub fn mlp_specs(
-    prefix: &str,
-    input: i64,
-    hidden: i64,
-    output: i64,
-    rng: &mut impl rand::Rng,
-) -> Vec<(String, Vec<i64>, Vec<f32>)> {
+pub fn mlp_specs(prefix: &str, input: i64, hidden: i64, output: i64, rng: &mut impl rand::Rng) -> Vec<(String, Vec<i64>, Vec<f32>)> {
     let mut specs = Vec::with_capacity(6);
-    for (layer, fan_in, fan_out) in [
-        (LAYER_0, input, hidden),
-        (LAYER_1, hidden, hidden),
-        (LAYER_OUT, hidden, output),
-    ] {
-        specs.push((
-            format!("{prefix}.{layer}.weight"),
-            vec![fan_out, fan_in],
-            linear_init(rng, fan_in, fan_out * fan_in),
-        ));
-        specs.push((
-            format!("{prefix}.{layer}.bias"),
-            vec![fan_out],
-            linear_init(rng, fan_in, fan_out),
-        ));
+    for (layer, fan_in, fan_out) in [(LAYER_0, input, hidden), (LAYER_1, hidden, hidden), (LAYER_OUT, hidden, output)] {
+        specs.push((format!("{prefix}.{layer}.weight"), vec![fan_out, fan_in], linear_init(rng, fan_in, fan_out * fan_in)));
+        specs.push((format!("{prefix}.{layer}.bias"), vec![fan_out], linear_init(rng, fan_in, fan_out)));
     }
     specs
 }
@@ -412,19 +338,8 @@ pub fn mlp_specs(
 /// Network j is initialised exactly as an `nn.Linear` stack would be (j = 0 first).
 /// Used for the critics, which are never published, so this layout is internal to
 /// checkpoints.
-pub fn stacked_mlp_specs(
-    prefix: &str,
-    k: i64,
-    input: i64,
-    hidden: i64,
-    output: i64,
-    rng: &mut impl rand::Rng,
-) -> Vec<(String, Vec<i64>, Vec<f32>)> {
-    let layers = [
-        (LAYER_0, input, hidden),
-        (LAYER_1, hidden, hidden),
-        (LAYER_OUT, hidden, output),
-    ];
+pub fn stacked_mlp_specs(prefix: &str, k: i64, input: i64, hidden: i64, output: i64, rng: &mut impl rand::Rng) -> Vec<(String, Vec<i64>, Vec<f32>)> {
+    let layers = [(LAYER_0, input, hidden), (LAYER_1, hidden, hidden), (LAYER_OUT, hidden, output)];
     let mut w: Vec<Vec<f32>> = vec![Vec::new(); 3];
     let mut b: Vec<Vec<f32>> = vec![Vec::new(); 3];
     for _ in 0..k {
@@ -444,16 +359,8 @@ pub fn stacked_mlp_specs(
     }
     let mut specs = Vec::with_capacity(6);
     for (i, (layer, fan_in, fan_out)) in layers.into_iter().enumerate() {
-        specs.push((
-            format!("{prefix}.{layer}.weight"),
-            vec![k, fan_in, fan_out],
-            std::mem::take(&mut w[i]),
-        ));
-        specs.push((
-            format!("{prefix}.{layer}.bias"),
-            vec![k, 1, fan_out],
-            std::mem::take(&mut b[i]),
-        ));
+        specs.push((format!("{prefix}.{layer}.weight"), vec![k, fan_in, fan_out], std::mem::take(&mut w[i])));
+        specs.push((format!("{prefix}.{layer}.bias"), vec![k, 1, fan_out], std::mem::take(&mut b[i])));
     }
     specs
 }
@@ -531,25 +438,15 @@ mod param_tests {
         let x = x.set_requires_grad(true);
         let loss = mlp_forward(set.frozen(), &x).sum(None);
         let gx = Tensor::run_backward(&[&loss], &[&x], false, false);
-        let gp = Tensor::run_backward(
-            &[&mlp_forward(set.params(), &x).sum(None)],
-            &[&x],
-            false,
-            false,
-        );
+        let gp = Tensor::run_backward(&[&mlp_forward(set.params(), &x).sum(None)], &[&x], false, false);
         assert!(gx[0].allclose(&gp[0], 1e-6, 1e-6, false));
     }
 
     #[test]
     fn fused_and_sequential_stacked_forwards_agree() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(2);
-        let set = ParamSet::new(
-            stacked_mlp_specs("critic", 2, 5, 8, 1, &mut rng),
-            tch::Device::Cpu,
-        )
-        .unwrap();
-        let x = Tensor::from_slice(&(0..15).map(|i| i as f32 / 7.0 - 1.0).collect::<Vec<_>>())
-            .view([3, 5]);
+        let set = ParamSet::new(stacked_mlp_specs("critic", 2, 5, 8, 1, &mut rng), tch::Device::Cpu).unwrap();
+        let x = Tensor::from_slice(&(0..15).map(|i| i as f32 / 7.0 - 1.0).collect::<Vec<_>>()).view([3, 5]);
         let a = stacked_mlp_forward(set.params(), &x, true);
         let b = stacked_mlp_forward(set.params(), &x, false);
         assert_eq!(a.size(), vec![2, 3, 1]);

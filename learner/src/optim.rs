@@ -55,14 +55,7 @@ impl Adam {
     /// Zero moments for `numel` parameters on `device`.
     pub fn new(numel: i64, device: tch::Device, lr: f64, cfg: AdamConfig) -> Self {
         let opts = (tch::Kind::Float, device);
-        Self {
-            lr,
-            cfg,
-            exp_avg: Tensor::zeros([numel], opts),
-            exp_avg_sq: Tensor::zeros([numel], opts),
-            step: 0,
-            scratch: Tensor::zeros([numel], opts),
-        }
+        Self { lr, cfg, exp_avg: Tensor::zeros([numel], opts), exp_avg_sq: Tensor::zeros([numel], opts), step: 0, scratch: Tensor::zeros([numel], opts) }
     }
 
     /// The learning rate.
@@ -340,10 +333,7 @@ mod tests {
         let norm = clip_grad_norm(&mut g, 1.0);
         assert!((norm - 5.0).abs() < 1e-6);
         let v = Vec::<f32>::try_from(&g).unwrap();
-        assert!(
-            (v[0] - 0.6).abs() < 1e-5 && (v[1] - 0.8).abs() < 1e-5,
-            "{v:?}"
-        );
+        assert!((v[0] - 0.6).abs() < 1e-5 && (v[1] - 0.8).abs() < 1e-5, "{v:?}");
         let mut small = Tensor::from_slice(&[0.3f32, 0.4]);
         clip_grad_norm(&mut small, 1.0);
         assert_eq!(Vec::<f32>::try_from(&small).unwrap(), vec![0.3, 0.4]);

@@ -21,7 +21,6 @@
 //!
 //! Everything here is libtorch-free.
 
-
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
@@ -30,10 +29,7 @@ use std::time::{Duration, Instant};
 
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
-use mapless_proto::v1::{
-    PriorityUpdate, PriorityUpdateResponse, ProtocolVersion, SampleRequest, SampledBatch, Selector,
-    ServerInfoRequest,
-};
+use mapless_proto::v1::{PriorityUpdate, PriorityUpdateResponse, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest};
 use mapless_replay::Table;
 use tokio::sync::{Notify, watch};
 use tonic::Code;
@@ -98,20 +94,10 @@ pub struct SourceStats {
 /// Checks priorities before they leave the update thread; returns them as f64.
 fn checked_priorities(keys: &[u64], priorities: &[f32]) -> Result<Vec<f64>, LearnerError> {
     if keys.len() != priorities.len() {
-        return Err(LearnerError::InvalidPriorities {
-            reason: format!("{} keys but {} priorities", keys.len(), priorities.len()),
-        });
+        return Err(LearnerError::InvalidPriorities { reason: format!("{} keys but {} priorities", keys.len(), priorities.len()) });
     }
-    if let Some(i) = priorities
-        .iter()
-        .position(|p| !(p.is_finite() && *p >= 0.0))
-    {
-        return Err(LearnerError::InvalidPriorities {
-            reason: format!(
-                "priority {i} (key {}) is {}; priorities must be finite and >= 0",
-                keys[i], priorities[i]
-            ),
-        });
+    if let Some(i) = priorities.iter().position(|p| !(p.is_finite() && *p >= 0.0)) {
+        return Err(LearnerError::InvalidPriorities { reason: format!("priority {i} (key {}) is {}; priorities must be finite and >= 0", keys[i], priorities[i]) });
     }
     Ok(priorities.iter().map(|&p| f64::from(p)).collect())
 }
@@ -146,28 +132,16 @@ impl InProcess {
     pub fn new(table: Arc<Table>, batch_size: usize) -> Result<Self, LearnerError> {
         let max = table.config().max_sample_rows;
         if batch_size == 0 || batch_size > max {
-            return Err(LearnerError::ReplaySourceConfig {
-                reason: format!(
-                    "batch_size is {batch_size}, must be in 1..={max} (the table's max_sample_rows)"
-                ),
-            });
+            return Err(LearnerError::ReplaySourceConfig { reason: format!("batch_size is {batch_size}, must be in 1..={max} (the table's max_sample_rows)") });
         }
-        Ok(Self {
-            table,
-            batch_size,
-            importance_beta: None,
-            timeout: None,
-            stats: SourceStats::default(),
-        })
+        Ok(Self { table, batch_size, importance_beta: None, timeout: None, stats: SourceStats::default() })
     }
 
     /// Importance-sampling exponent β (finite, >= 0); without it the table's configured β is
     /// used (0 for uniform tables).
     pub fn with_importance_beta(mut self, beta: f64) -> Result<Self, LearnerError> {
         if !(beta.is_finite() && beta >= 0.0) {
-            return Err(LearnerError::ReplaySourceConfig {
-                reason: format!("importance_beta is {beta}, must be finite and >= 0"),
-            });
+            return Err(LearnerError::ReplaySourceConfig { reason: format!("importance_beta is {beta}, must be finite and >= 0") });
         }
         self.importance_beta = Some(beta);
         Ok(self)
@@ -189,10 +163,7 @@ impl InProcess {
 impl ReplaySource for InProcess {
     fn next_batch(&mut self) -> Result<SampledBatch, LearnerError> {
         let deadline = self.timeout.map(|t| Instant::now() + t);
-        match self
-            .table
-            .sample(self.batch_size, self.importance_beta, deadline)
-        {
+        match self.table.sample(self.batch_size, self.importance_beta, deadline) {
             Ok(batch) => {
                 self.stats.batches += 1;
                 Ok(batch)
@@ -285,10 +256,7 @@ impl GrpcSourceConfig {
             return bad("queue_depth and priority_queue_depth must be >= 1".into());
         }
         if !(0.0..=1.0).contains(&self.importance_beta) {
-            return bad(format!(
-                "importance_beta is {}, must be in [0, 1]",
-                self.importance_beta
-            ));
+            return bad(format!("importance_beta is {}, must be in [0, 1]", self.importance_beta));
         }
         if self.backoff_initial.is_zero() || self.backoff_max < self.backoff_initial {
             return bad("backoff_initial must be > 0 and <= backoff_max".into());
@@ -345,10 +313,7 @@ pub struct GrpcSource {
 
 impl std::fmt::Debug for GrpcSource {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GrpcSource")
-            .field("endpoint", &self.endpoint)
-            .field("stopped", &self.stopped)
-            .finish()
+        f.debug_struct("GrpcSource").field("endpoint", &self.endpoint).field("stopped", &self.stopped).finish()
     }
 }
 
@@ -358,12 +323,8 @@ impl GrpcSource {
     /// that can never work.
     pub fn start(config: GrpcSourceConfig) -> Result<Self, LearnerError> {
         config.validate()?;
-        let runtime = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .map_err(|e| LearnerError::ReplaySourceConfig {
-                reason: format!("cannot start the background runtime: {e}"),
-            })?;
+        let runtime =
+            tokio::runtime::Builder::new_current_thread().enable_all().build().map_err(|e| LearnerError::ReplaySourceConfig { reason: format!("cannot start the background runtime: {e}") })?;
         let (batch_tx, batches) = std::sync::mpsc::sync_channel(config.queue_depth);
         let (priority_tx, priority_rx) = tokio::sync::mpsc::channel(config.priority_queue_depth);
         let (stop, stop_rx) = watch::channel(false);
@@ -377,44 +338,22 @@ impl GrpcSource {
                 .name("replay-source".into())
                 .spawn(move || {
                     runtime.block_on(async move {
-                        let priorities = tokio::spawn(priority_loop(
-                            config.clone(),
-                            priority_rx,
-                            Arc::clone(&shared),
-                            stop_rx.clone(),
-                        ));
+                        let priorities = tokio::spawn(priority_loop(config.clone(), priority_rx, Arc::clone(&shared), stop_rx.clone()));
                         sample_loop(&config, &batch_tx, &room, &shared, stop_rx).await;
                         priorities.abort();
                         let _ = priorities.await;
                     });
                 })
-                .map_err(|e| LearnerError::ReplaySourceConfig {
-                    reason: format!("cannot start the background thread: {e}"),
-                })?
+                .map_err(|e| LearnerError::ReplaySourceConfig { reason: format!("cannot start the background thread: {e}") })?
         };
-        Ok(Self {
-            batches,
-            room,
-            priorities: priority_tx,
-            shared,
-            stop,
-            thread: Some(thread),
-            batches_delivered: 0,
-            stopped: None,
-            endpoint,
-        })
+        Ok(Self { batches, room, priorities: priority_tx, shared, stop, thread: Some(thread), batches_delivered: 0, stopped: None, endpoint })
     }
 
     /// Like [`ReplaySource::next_batch`], but gives up after `timeout` with `Ok(None)` (for
     /// an update loop that wants to log that it is waiting).
-    pub fn next_batch_timeout(
-        &mut self,
-        timeout: Duration,
-    ) -> Result<Option<SampledBatch>, LearnerError> {
+    pub fn next_batch_timeout(&mut self, timeout: Duration) -> Result<Option<SampledBatch>, LearnerError> {
         if let Some(reason) = &self.stopped {
-            return Err(LearnerError::ReplaySourceStopped {
-                reason: reason.clone(),
-            });
+            return Err(LearnerError::ReplaySourceStopped { reason: reason.clone() });
         }
         match self.batches.recv_timeout(timeout) {
             Ok(item) => self.take(item).map(Some),
@@ -423,10 +362,7 @@ impl GrpcSource {
         }
     }
 
-    fn take(
-        &mut self,
-        item: Result<SampledBatch, LearnerError>,
-    ) -> Result<SampledBatch, LearnerError> {
+    fn take(&mut self, item: Result<SampledBatch, LearnerError>) -> Result<SampledBatch, LearnerError> {
         self.room.notify_one();
         match item {
             Ok(batch) => {
@@ -455,9 +391,7 @@ impl ReplaySource for GrpcSource {
 
     fn next_batch(&mut self) -> Result<SampledBatch, LearnerError> {
         if let Some(reason) = &self.stopped {
-            return Err(LearnerError::ReplaySourceStopped {
-                reason: reason.clone(),
-            });
+            return Err(LearnerError::ReplaySourceStopped { reason: reason.clone() });
         }
         match self.batches.recv() {
             Ok(item) => self.take(item),
@@ -473,19 +407,11 @@ impl ReplaySource for GrpcSource {
         match self.priorities.try_send((keys.to_vec(), priorities)) {
             Ok(()) => Ok(()),
             Err(tokio::sync::mpsc::error::TrySendError::Full(_)) => {
-                self.shared.record_error(
-                    &self.shared.priority_updates_dropped,
-                    "priority update dropped: the outgoing queue is full",
-                );
+                self.shared.record_error(&self.shared.priority_updates_dropped, "priority update dropped: the outgoing queue is full");
                 Ok(())
             }
             Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => {
-                Err(LearnerError::ReplaySourceStopped {
-                    reason: self
-                        .stopped
-                        .clone()
-                        .unwrap_or_else(|| "the background priority task ended".into()),
-                })
+                Err(LearnerError::ReplaySourceStopped { reason: self.stopped.clone().unwrap_or_else(|| "the background priority task ended".into()) })
             }
         }
     }
@@ -517,16 +443,7 @@ impl Drop for GrpcSource {
 
 /// Status codes after which retrying the same request cannot succeed.
 fn is_fatal(code: Code) -> bool {
-    matches!(
-        code,
-        Code::InvalidArgument
-            | Code::NotFound
-            | Code::FailedPrecondition
-            | Code::Unauthenticated
-            | Code::PermissionDenied
-            | Code::Unimplemented
-            | Code::OutOfRange
-    )
+    matches!(code, Code::InvalidArgument | Code::NotFound | Code::FailedPrecondition | Code::Unauthenticated | Code::PermissionDenied | Code::Unimplemented | Code::OutOfRange)
 }
 
 /// Why opening a stream failed: worth retrying or not.
@@ -550,13 +467,9 @@ struct OpenStream {
     act_dim: usize,
 }
 
-async fn connect_client(
-    endpoint: &GrpcEndpoint,
-) -> Result<ReplayServiceClient<Channel>, LearnerError> {
+async fn connect_client(endpoint: &GrpcEndpoint) -> Result<ReplayServiceClient<Channel>, LearnerError> {
     let channel = endpoint.connect("replay").await?;
-    Ok(ReplayServiceClient::new(channel)
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES))
+    Ok(ReplayServiceClient::new(channel).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES))
 }
 
 /// About the bytes one encoded minibatch of `rows` rows takes: per row the key, probability,
@@ -575,8 +488,7 @@ pub fn minibatch_wire_bytes(rows: u32, obs_dim: usize, act_dim: usize) -> u64 {
 /// this keeps what is in flight to about `prefetch` minibatches on the wire, `prefetch` drawn
 /// and waiting at the server and `queue_depth` decoded here.
 pub fn sample_stream_window(config: &GrpcSourceConfig, obs_dim: usize, act_dim: usize) -> u32 {
-    let bytes = u64::from(config.server_prefetch.max(1))
-        .saturating_mul(minibatch_wire_bytes(config.batch_size, obs_dim, act_dim));
+    let bytes = u64::from(config.server_prefetch.max(1)).saturating_mul(minibatch_wire_bytes(config.batch_size, obs_dim, act_dim));
     // 2³¹ − 1 is HTTP/2's largest window.
     bytes.clamp(16 * 1024, (1 << 31) - 1) as u32
 }
@@ -584,28 +496,14 @@ pub fn sample_stream_window(config: &GrpcSourceConfig, obs_dim: usize, act_dim: 
 async fn open_stream(config: &GrpcSourceConfig, shared: &Shared) -> Result<OpenStream, OpenError> {
     let endpoint = &config.endpoint;
     let mut client = connect_client(endpoint).await.map_err(classify)?;
-    let info_request = endpoint
-        .request(
-            "replay",
-            ServerInfoRequest {
-                protocol_version: ProtocolVersion::V1 as i32,
-            },
-        )
-        .map_err(|e| OpenError::Fatal(e.into()))?;
-    let info = client
-        .server_info(info_request)
-        .await
-        .map_err(|s| classify(endpoint.status_error("replay", &s).into()))?
-        .into_inner();
+    let info_request = endpoint.request("replay", ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32 }).map_err(|e| OpenError::Fatal(e.into()))?;
+    let info = client.server_info(info_request).await.map_err(|s| classify(endpoint.status_error("replay", &s).into()))?.into_inner();
     if !config.table.is_empty() && config.table != info.table {
         return Err(OpenError::Fatal(LearnerError::Grpc {
             service: "replay",
             endpoint: endpoint.uri().to_owned(),
             code: Code::NotFound,
-            message: format!(
-                "no table `{}`; the server hosts `{}`",
-                config.table, info.table
-            ),
+            message: format!("no table `{}`; the server hosts `{}`", config.table, info.table),
         }));
     }
     let (obs_dim, act_dim) = (info.obs_dim as usize, info.act_dim as usize);
@@ -616,15 +514,10 @@ async fn open_stream(config: &GrpcSourceConfig, shared: &Shared) -> Result<OpenS
             service: "replay",
             endpoint: endpoint.uri().to_owned(),
             code: Code::FailedPrecondition,
-            message: format!(
-                "table `{}` holds obs_dim {obs_dim}, act_dim {act_dim}; this learner expects obs_dim {obs}, act_dim {act}",
-                info.table
-            ),
+            message: format!("table `{}` holds obs_dim {obs_dim}, act_dim {act_dim}; this learner expects obs_dim {obs}, act_dim {act}", info.table),
         }));
     }
-    shared
-        .uniform
-        .store(info.selector == Selector::Uniform as i32, Ordering::Relaxed);
+    shared.uniform.store(info.selector == Selector::Uniform as i32, Ordering::Relaxed);
     let request = endpoint
         .request(
             "replay",
@@ -645,19 +538,9 @@ async fn open_stream(config: &GrpcSourceConfig, shared: &Shared) -> Result<OpenS
     // The stream gets its own connection, with a window sized to the prefetch now that the
     // minibatch size is known.
     let window = sample_stream_window(config, obs_dim, act_dim);
-    let mut client = connect_client(&endpoint.clone().with_stream_window(window))
-        .await
-        .map_err(classify)?;
-    let stream = client
-        .sample(request)
-        .await
-        .map_err(|s| classify(endpoint.status_error("replay", &s).into()))?
-        .into_inner();
-    Ok(OpenStream {
-        stream,
-        obs_dim,
-        act_dim,
-    })
+    let mut client = connect_client(&endpoint.clone().with_stream_window(window)).await.map_err(classify)?;
+    let stream = client.sample(request).await.map_err(|s| classify(endpoint.status_error("replay", &s).into()))?.into_inner();
+    Ok(OpenStream { stream, obs_dim, act_dim })
 }
 
 async fn wait_stop(stop: &mut watch::Receiver<bool>) {
@@ -675,12 +558,7 @@ enum Push {
 }
 
 /// Puts `item` on the bounded queue, waiting (asynchronously) for room.
-async fn push(
-    tx: &SyncSender<Result<SampledBatch, LearnerError>>,
-    room: &Notify,
-    stop: &mut watch::Receiver<bool>,
-    mut item: Result<SampledBatch, LearnerError>,
-) -> Push {
+async fn push(tx: &SyncSender<Result<SampledBatch, LearnerError>>, room: &Notify, stop: &mut watch::Receiver<bool>, mut item: Result<SampledBatch, LearnerError>) -> Push {
     loop {
         match tx.try_send(item) {
             Ok(()) => return Push::Queued,
@@ -700,13 +578,7 @@ async fn push(
 
 /// Keeps the queue full, reconnecting with exponential backoff; returns when the source is
 /// dropped or after a fatal error (which it queues for `next_batch`).
-async fn sample_loop(
-    config: &GrpcSourceConfig,
-    tx: &SyncSender<Result<SampledBatch, LearnerError>>,
-    room: &Notify,
-    shared: &Shared,
-    mut stop: watch::Receiver<bool>,
-) {
+async fn sample_loop(config: &GrpcSourceConfig, tx: &SyncSender<Result<SampledBatch, LearnerError>>, room: &Notify, shared: &Shared, mut stop: watch::Receiver<bool>) {
     let endpoint = config.endpoint.uri();
     let max_rows = config.batch_size as usize;
     let mut backoff = config.backoff_initial;
@@ -725,11 +597,7 @@ async fn sample_loop(
                     shared.reconnects.fetch_add(1, Ordering::Relaxed);
                     info!(endpoint, "replay sample stream reopened");
                 } else {
-                    info!(
-                        endpoint,
-                        batch_size = config.batch_size,
-                        "replay sample stream opened"
-                    );
+                    info!(endpoint, batch_size = config.batch_size, "replay sample stream opened");
                 }
                 opened += 1;
                 loop {
@@ -741,8 +609,7 @@ async fn sample_loop(
                         Ok(Some(batch)) => {
                             backoff = config.backoff_initial;
                             if let Err(e) = batch.validate(open.obs_dim, open.act_dim, max_rows) {
-                                let text =
-                                    format!("invalid minibatch from {endpoint} dropped: {e}");
+                                let text = format!("invalid minibatch from {endpoint} dropped: {e}");
                                 warn!("{text}");
                                 shared.record_error(&shared.invalid_batches, &text);
                                 continue;
@@ -752,9 +619,7 @@ async fn sample_loop(
                             }
                         }
                         Ok(None) => {
-                            let text = format!(
-                                "replay sample stream at {endpoint} ended without an error"
-                            );
+                            let text = format!("replay sample stream at {endpoint} ended without an error");
                             warn!("{text}; reopening");
                             shared.record_error(&shared.stream_errors, &text);
                             break;
@@ -794,12 +659,7 @@ async fn sample_loop(
 }
 
 /// Sends queued priority updates, each with a few retries; runs until the source is dropped.
-async fn priority_loop(
-    config: GrpcSourceConfig,
-    mut updates: tokio::sync::mpsc::Receiver<(Vec<u64>, Vec<f64>)>,
-    shared: Arc<Shared>,
-    mut stop: watch::Receiver<bool>,
-) {
+async fn priority_loop(config: GrpcSourceConfig, mut updates: tokio::sync::mpsc::Receiver<(Vec<u64>, Vec<f64>)>, shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
     /// Attempts per update before it is dropped: priorities are a hint, a stale one is cheap
     /// to lose, and waiting longer would only let the queue overflow.
     const ATTEMPTS: u32 = 3;
@@ -815,12 +675,7 @@ async fn priority_loop(
         if shared.uniform.load(Ordering::Relaxed) {
             continue;
         }
-        let update = PriorityUpdate {
-            protocol_version: ProtocolVersion::V1 as i32,
-            table: config.table.clone(),
-            keys,
-            priorities,
-        };
+        let update = PriorityUpdate { protocol_version: ProtocolVersion::V1 as i32, table: config.table.clone(), keys, priorities };
         let mut backoff = config.backoff_initial;
         for attempt in 1..=ATTEMPTS {
             let outcome = tokio::select! {
@@ -830,25 +685,16 @@ async fn priority_loop(
             match outcome {
                 Ok(response) => {
                     shared.priority_updates.fetch_add(1, Ordering::Relaxed);
-                    debug!(
-                        updated = response.updated,
-                        unknown_keys = response.unknown_keys,
-                        "priorities updated"
-                    );
+                    debug!(updated = response.updated, unknown_keys = response.unknown_keys, "priorities updated");
                     break;
                 }
-                Err(LearnerError::Grpc {
-                    code: Code::FailedPrecondition,
-                    ref message,
-                    ..
-                }) if message.contains("uniform") => {
+                Err(LearnerError::Grpc { code: Code::FailedPrecondition, ref message, .. }) if message.contains("uniform") => {
                     // The table has no priorities; stop sending (ServerInfo also says so).
                     shared.uniform.store(true, Ordering::Relaxed);
                     break;
                 }
                 Err(error) => {
-                    let fatal =
-                        matches!(&error, LearnerError::Grpc { code, .. } if is_fatal(*code));
+                    let fatal = matches!(&error, LearnerError::Grpc { code, .. } if is_fatal(*code));
                     if fatal || attempt == ATTEMPTS {
                         warn!(error = %error, attempt, "priority update dropped");
                         shared.record_error(&shared.priority_update_errors, &error.to_string());
@@ -868,11 +714,7 @@ async fn priority_loop(
 }
 
 /// One UpdatePriorities call, dialling first when there is no connection yet.
-async fn send_priorities(
-    config: &GrpcSourceConfig,
-    client: &mut Option<ReplayServiceClient<Channel>>,
-    update: &PriorityUpdate,
-) -> Result<PriorityUpdateResponse, LearnerError> {
+async fn send_priorities(config: &GrpcSourceConfig, client: &mut Option<ReplayServiceClient<Channel>>, update: &PriorityUpdate) -> Result<PriorityUpdateResponse, LearnerError> {
     let mut c = match client {
         Some(c) => c.clone(),
         None => {
@@ -882,8 +724,5 @@ async fn send_priorities(
         }
     };
     let request = config.endpoint.request("replay", update.clone())?;
-    c.update_priorities(request)
-        .await
-        .map(tonic::Response::into_inner)
-        .map_err(|s| config.endpoint.status_error("replay", &s).into())
+    c.update_priorities(request).await.map(tonic::Response::into_inner).map_err(|s| config.endpoint.status_error("replay", &s).into())
 }

@@ -114,16 +114,11 @@ pub fn frame_record(data: &[u8], out: &mut Vec<u8>) {
 // ---------------------------------------------------------------------------------------------
 
 fn io_error(path: &Path, error: std::io::Error) -> LearnerError {
-    LearnerError::FileIo {
-        path: path.to_owned(),
-        error,
-    }
+    LearnerError::FileIo { path: path.to_owned(), error }
 }
 
 fn now_secs() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64())
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64())
 }
 
 /// This machine's name for the file name: `/proc/sys/kernel/hostname`, else `$HOSTNAME`,
@@ -135,15 +130,7 @@ fn host_name() -> String {
         .map(|h| h.trim().to_owned())
         .filter(|h| !h.is_empty())
         .unwrap_or_else(|| "localhost".to_owned());
-    raw.chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
+    raw.chars().map(|c| if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') { c } else { '_' }).collect()
 }
 
 /// Writes scalars to a new TensorBoard event file.
@@ -163,10 +150,7 @@ pub struct SummaryWriter {
 
 impl std::fmt::Debug for SummaryWriter {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SummaryWriter")
-            .field("path", &self.path)
-            .field("buffered_bytes", &self.buffer.len())
-            .finish()
+        f.debug_struct("SummaryWriter").field("path", &self.path).field("buffered_bytes", &self.buffer.len()).finish()
     }
 }
 
@@ -177,18 +161,10 @@ impl SummaryWriter {
     pub fn create(log_dir: &Path) -> Result<Self, LearnerError> {
         std::fs::create_dir_all(log_dir).map_err(|e| io_error(log_dir, e))?;
         let wall_time = now_secs();
-        let base = format!(
-            "events.out.tfevents.{:010}.{}",
-            wall_time as u64,
-            host_name()
-        );
+        let base = format!("events.out.tfevents.{:010}.{}", wall_time as u64, host_name());
         let mut attempt = 0u32;
         let (path, file) = loop {
-            let name = if attempt == 0 {
-                base.clone()
-            } else {
-                format!("{base}.{attempt}")
-            };
+            let name = if attempt == 0 { base.clone() } else { format!("{base}.{attempt}") };
             let path = log_dir.join(name);
             match OpenOptions::new().write(true).create_new(true).open(&path) {
                 Ok(file) => break (path, file),
@@ -198,19 +174,8 @@ impl SummaryWriter {
                 Err(e) => return Err(io_error(&path, e)),
             }
         };
-        let mut writer = Self {
-            path,
-            file,
-            buffer: Vec::with_capacity(MAX_BUFFERED_BYTES),
-            last_flush: Instant::now(),
-            flush_interval: DEFAULT_FLUSH_INTERVAL,
-        };
-        writer.push(&Event {
-            wall_time,
-            step: 0,
-            file_version: Some(FILE_VERSION.to_owned()),
-            summary: None,
-        });
+        let mut writer = Self { path, file, buffer: Vec::with_capacity(MAX_BUFFERED_BYTES), last_flush: Instant::now(), flush_interval: DEFAULT_FLUSH_INTERVAL };
+        writer.push(&Event { wall_time, step: 0, file_version: Some(FILE_VERSION.to_owned()), summary: None });
         writer.flush()?;
         Ok(writer)
     }
@@ -232,33 +197,12 @@ impl SummaryWriter {
     }
 
     /// [`SummaryWriter::add_scalar`] with an explicit wall time (seconds since the epoch).
-    pub fn add_scalar_at(
-        &mut self,
-        tag: &str,
-        step: i64,
-        value: f32,
-        wall_time: f64,
-    ) -> Result<(), LearnerError> {
+    pub fn add_scalar_at(&mut self, tag: &str, step: i64, value: f32, wall_time: f64) -> Result<(), LearnerError> {
         if tag.is_empty() {
-            return Err(LearnerError::EventFile {
-                path: self.path.clone(),
-                reason: "a scalar needs a non-empty tag".into(),
-            });
+            return Err(LearnerError::EventFile { path: self.path.clone(), reason: "a scalar needs a non-empty tag".into() });
         }
-        self.push(&Event {
-            wall_time,
-            step,
-            file_version: None,
-            summary: Some(Summary {
-                value: vec![SummaryValue {
-                    tag: tag.to_owned(),
-                    simple_value: Some(value),
-                }],
-            }),
-        });
-        if self.buffer.len() >= MAX_BUFFERED_BYTES
-            || self.last_flush.elapsed() >= self.flush_interval
-        {
+        self.push(&Event { wall_time, step, file_version: None, summary: Some(Summary { value: vec![SummaryValue { tag: tag.to_owned(), simple_value: Some(value) }] }) });
+        if self.buffer.len() >= MAX_BUFFERED_BYTES || self.last_flush.elapsed() >= self.flush_interval {
             self.flush()?;
         }
         Ok(())
@@ -274,10 +218,7 @@ impl SummaryWriter {
         if self.buffer.is_empty() {
             return Ok(());
         }
-        let result = self
-            .file
-            .write_all(&self.buffer)
-            .and_then(|()| self.file.flush());
+        let result = self.file.write_all(&self.buffer).and_then(|()| self.file.flush());
         // Dropped even on error: a record written halfway must not be written again, and a
         // full disk must not grow memory without bound. TensorBoard skips a torn tail.
         self.buffer.clear();
@@ -301,19 +242,11 @@ impl Drop for SummaryWriter {
 /// byte offset of the bad record.
 pub fn read_records(path: &Path) -> Result<Vec<Vec<u8>>, LearnerError> {
     let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
-    let bad = |offset: usize, reason: String| LearnerError::EventFile {
-        path: path.to_owned(),
-        reason: format!("record at byte {offset}: {reason}"),
-    };
+    let bad = |offset: usize, reason: String| LearnerError::EventFile { path: path.to_owned(), reason: format!("record at byte {offset}: {reason}") };
     let mut records = Vec::new();
     let mut at = 0usize;
     while at < bytes.len() {
-        let header = bytes.get(at..at + 12).ok_or_else(|| {
-            bad(
-                at,
-                format!("truncated header ({} bytes left)", bytes.len() - at),
-            )
-        })?;
+        let header = bytes.get(at..at + 12).ok_or_else(|| bad(at, format!("truncated header ({} bytes left)", bytes.len() - at)))?;
         let (len_bytes, len_crc) = header.split_at(8);
         let stored = u32::from_le_bytes([len_crc[0], len_crc[1], len_crc[2], len_crc[3]]);
         if stored != masked_crc32c(len_bytes) {
@@ -343,12 +276,7 @@ pub fn read_events(path: &Path) -> Result<Vec<Event>, LearnerError> {
     read_records(path)?
         .iter()
         .enumerate()
-        .map(|(i, data)| {
-            Event::decode(data.as_slice()).map_err(|e| LearnerError::EventFile {
-                path: path.to_owned(),
-                reason: format!("record {i} is not a tensorflow.Event: {e}"),
-            })
-        })
+        .map(|(i, data)| Event::decode(data.as_slice()).map_err(|e| LearnerError::EventFile { path: path.to_owned(), reason: format!("record {i} is not a tensorflow.Event: {e}") }))
         .collect()
 }
 
@@ -358,16 +286,7 @@ pub fn read_scalars(path: &Path) -> Result<Vec<Scalar>, LearnerError> {
         .into_iter()
         .flat_map(|event| {
             let (step, wall_time) = (event.step, event.wall_time);
-            event.summary.into_iter().flat_map(move |summary| {
-                summary.value.into_iter().filter_map(move |v| {
-                    v.simple_value.map(|value| Scalar {
-                        tag: v.tag,
-                        step,
-                        value,
-                        wall_time,
-                    })
-                })
-            })
+            event.summary.into_iter().flat_map(move |summary| summary.value.into_iter().filter_map(move |v| v.simple_value.map(|value| Scalar { tag: v.tag, step, value, wall_time })))
         })
         .collect())
 }

@@ -33,10 +33,7 @@ pub struct TorchThreads {
 
 impl Default for TorchThreads {
     fn default() -> Self {
-        Self {
-            intra_op: DEFAULT_TORCH_THREADS,
-            inter_op: DEFAULT_TORCH_THREADS,
-        }
+        Self { intra_op: DEFAULT_TORCH_THREADS, inter_op: DEFAULT_TORCH_THREADS }
     }
 }
 
@@ -57,26 +54,16 @@ impl TorchThreads {
 
         // A poisoned lock only means another thread panicked while holding it; the Option
         // inside is still meaningful.
-        let mut fixed = INTEROP_FIXED
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        let mut fixed = INTEROP_FIXED.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         match *fixed {
             Some(current) if current == self.inter_op => {}
             Some(current) => {
-                return Err(LearnerError::InteropThreadsFixed {
-                    requested: self.inter_op,
-                    reason: format!("this process already set it to {current}"),
-                });
+                return Err(LearnerError::InteropThreadsFixed { requested: self.inter_op, reason: format!("this process already set it to {current}") });
             }
             None => {
                 // tch panics (rather than returning an error) when libtorch throws, e.g. because
                 // inter-op work already ran; turn that into an error value.
-                std::panic::catch_unwind(|| tch::set_num_interop_threads(inter)).map_err(
-                    |panic| LearnerError::InteropThreadsFixed {
-                        requested: self.inter_op,
-                        reason: panic_message(&*panic),
-                    },
-                )?;
+                std::panic::catch_unwind(|| tch::set_num_interop_threads(inter)).map_err(|panic| LearnerError::InteropThreadsFixed { requested: self.inter_op, reason: panic_message(&*panic) })?;
                 *fixed = Some(self.inter_op);
             }
         }
@@ -110,30 +97,13 @@ mod tests {
 
     #[test]
     fn default_is_one_thread_per_pool() {
-        assert_eq!(
-            TorchThreads::default(),
-            TorchThreads {
-                intra_op: 1,
-                inter_op: 1
-            }
-        );
+        assert_eq!(TorchThreads::default(), TorchThreads { intra_op: 1, inter_op: 1 });
     }
 
     #[test]
     fn zero_threads_is_rejected_before_reaching_libtorch() {
-        let err = TorchThreads {
-            intra_op: 0,
-            inter_op: 1,
-        }
-        .apply()
-        .unwrap_err();
-        assert!(matches!(
-            err,
-            LearnerError::InvalidThreadCount {
-                pool: "intra-op",
-                count: 0
-            }
-        ));
+        let err = TorchThreads { intra_op: 0, inter_op: 1 }.apply().unwrap_err();
+        assert!(matches!(err, LearnerError::InvalidThreadCount { pool: "intra-op", count: 0 }));
     }
 
     #[test]
@@ -144,16 +114,8 @@ mod tests {
         assert_eq!(tch::get_num_threads(), 1);
         assert_eq!(tch::get_num_interop_threads(), 1);
 
-        let err = TorchThreads {
-            intra_op: 1,
-            inter_op: 2,
-        }
-        .apply()
-        .unwrap_err();
-        assert!(
-            matches!(err, LearnerError::InteropThreadsFixed { requested: 2, .. }),
-            "{err}"
-        );
+        let err = TorchThreads { intra_op: 1, inter_op: 2 }.apply().unwrap_err();
+        assert!(matches!(err, LearnerError::InteropThreadsFixed { requested: 2, .. }), "{err}");
         assert_eq!(tch::get_num_interop_threads(), 1);
     }
 }

@@ -52,9 +52,7 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use mapless_proto::v1::weights_service_server::{WeightsService, WeightsServiceServer};
-use mapless_proto::v1::{
-    Algorithm, Dtype, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot,
-};
+use mapless_proto::v1::{Algorithm, Dtype, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot};
 use mapless_proto::{MAX_MESSAGE_BYTES, check_protocol_version};
 use mapless_replay::server::{BearerAuth, Security};
 use prost::Message as _;
@@ -100,18 +98,12 @@ const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
 type Latest = Option<Arc<WeightsSnapshot>>;
 
 fn invalid(origin: impl Into<String>, reason: impl Into<String>) -> LearnerError {
-    LearnerError::InvalidWeights {
-        origin: origin.into(),
-        reason: reason.into(),
-    }
+    LearnerError::InvalidWeights { origin: origin.into(), reason: reason.into() }
 }
 
 /// Milliseconds since the Unix epoch (0 if the clock is before it).
 pub fn unix_ms_now() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_millis() as u64)
-        .unwrap_or(0)
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -131,10 +123,7 @@ pub struct WeightsPublisher {
 
 impl std::fmt::Debug for WeightsPublisher {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WeightsPublisher")
-            .field("latest_version", &self.latest_version())
-            .field("subscribers", &self.subscriber_count())
-            .finish()
+        f.debug_struct("WeightsPublisher").field("latest_version", &self.latest_version()).field("subscribers", &self.subscriber_count()).finish()
     }
 }
 
@@ -148,9 +137,7 @@ impl WeightsPublisher {
     /// A publisher with nothing published yet.
     pub fn new() -> Self {
         let (latest, _) = watch::channel(None);
-        Self {
-            latest: Arc::new(latest),
-        }
+        Self { latest: Arc::new(latest) }
     }
 
     /// Makes `snapshot` the newest version and returns its version.
@@ -161,17 +148,10 @@ impl WeightsPublisher {
     pub fn publish(&self, snapshot: WeightsSnapshot) -> Result<u64, LearnerError> {
         let version = snapshot.version;
         let origin = || format!("publish version {version}");
-        snapshot
-            .validate()
-            .map_err(|e| invalid(origin(), e.to_string()))?;
+        snapshot.validate().map_err(|e| invalid(origin(), e.to_string()))?;
         let bytes = snapshot.encoded_len();
         if bytes > MAX_MESSAGE_BYTES {
-            return Err(invalid(
-                origin(),
-                format!(
-                    "encodes to {bytes} bytes, above the {MAX_MESSAGE_BYTES}-byte message limit"
-                ),
-            ));
+            return Err(invalid(origin(), format!("encodes to {bytes} bytes, above the {MAX_MESSAGE_BYTES}-byte message limit")));
         }
         let snapshot = Arc::new(snapshot);
         let mut newest = 0;
@@ -185,12 +165,7 @@ impl WeightsPublisher {
             true
         });
         if !replaced {
-            return Err(invalid(
-                origin(),
-                format!(
-                    "version {version} is not newer than the published version {newest}; versions strictly increase"
-                ),
-            ));
+            return Err(invalid(origin(), format!("version {version} is not newer than the published version {newest}; versions strictly increase")));
         }
         debug!(version, bytes, "weights published");
         Ok(version)
@@ -230,10 +205,7 @@ pub struct WeightsGrpc {
 impl WeightsGrpc {
     /// Serves what `publisher` publishes.
     pub fn new(publisher: &WeightsPublisher) -> Self {
-        Self {
-            latest: publisher.receiver(),
-            stopping: None,
-        }
+        Self { latest: publisher.receiver(), stopping: None }
     }
 
     /// Ends every stream with UNAVAILABLE once `stopping` turns true.
@@ -244,9 +216,7 @@ impl WeightsGrpc {
 
     /// The service wrapped for tonic, with [`MAX_MESSAGE_BYTES`] limits both ways.
     pub fn into_server(self) -> WeightsServiceServer<Self> {
-        WeightsServiceServer::new(self)
-            .max_decoding_message_size(MAX_MESSAGE_BYTES)
-            .max_encoding_message_size(MAX_MESSAGE_BYTES)
+        WeightsServiceServer::new(self).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES)
     }
 }
 
@@ -264,27 +234,16 @@ async fn stopped(stopping: &mut Option<watch::Receiver<bool>>) {
 }
 
 fn shutting_down() -> Status {
-    Status::unavailable(
-        "the learner's weights service is shutting down; reconnect with min_version = last received + 1",
-    )
+    Status::unavailable("the learner's weights service is shutting down; reconnect with min_version = last received + 1")
 }
 
 /// Feeds one Subscribe stream. Invariant: `sent` is the highest version this stream has
 /// delivered (or the client already has), so every send is strictly newer than the last.
-async fn feed_subscriber(
-    mut latest: watch::Receiver<Latest>,
-    mut stopping: Option<watch::Receiver<bool>>,
-    mut sent: u64,
-    tx: mpsc::Sender<Result<WeightsSnapshot, Status>>,
-) {
+async fn feed_subscriber(mut latest: watch::Receiver<Latest>, mut stopping: Option<watch::Receiver<bool>>, mut sent: u64, tx: mpsc::Sender<Result<WeightsSnapshot, Status>>) {
     let mut delivered = 0u64;
     loop {
         // Newest first: whatever was published while we waited on a slow client is skipped.
-        let next = latest
-            .borrow_and_update()
-            .as_ref()
-            .filter(|s| s.version > sent)
-            .cloned();
+        let next = latest.borrow_and_update().as_ref().filter(|s| s.version > sent).cloned();
         if let Some(snapshot) = next {
             let version = snapshot.version;
             let message = WeightsSnapshot::clone(&snapshot);
@@ -330,10 +289,7 @@ async fn feed_subscriber(
 impl WeightsService for WeightsGrpc {
     type SubscribeStream = Pin<Box<dyn Stream<Item = Result<WeightsSnapshot, Status>> + Send>>;
 
-    async fn subscribe(
-        &self,
-        request: Request<SubscribeRequest>,
-    ) -> Result<Response<Self::SubscribeStream>, Status> {
+    async fn subscribe(&self, request: Request<SubscribeRequest>) -> Result<Response<Self::SubscribeStream>, Status> {
         let peer = request.remote_addr();
         let request = request.into_inner();
         let span = info_span!(
@@ -355,10 +311,7 @@ impl WeightsService for WeightsGrpc {
         let (tx, rx) = mpsc::channel(1);
         // 0 and 1 both mean "any".
         let already_have = request.min_version.saturating_sub(1);
-        tokio::spawn(
-            feed_subscriber(self.latest.clone(), self.stopping.clone(), already_have, tx)
-                .instrument(span),
-        );
+        tokio::spawn(feed_subscriber(self.latest.clone(), self.stopping.clone(), already_have, tx).instrument(span));
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
     }
 }
@@ -376,43 +329,24 @@ pub struct ServeOptions {
 
 impl Default for ServeOptions {
     fn default() -> Self {
-        Self {
-            security: Security::default(),
-            shutdown_grace: Duration::from_secs(5),
-        }
+        Self { security: Security::default(), shutdown_grace: Duration::from_secs(5) }
     }
 }
 
 /// Serves `publisher` on `listener` with plain HTTP/2 and no token (loopback listeners only)
 /// until `shutdown` resolves.
-pub async fn run(
-    listener: TcpListener,
-    publisher: WeightsPublisher,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> Result<(), LearnerError> {
+pub async fn run(listener: TcpListener, publisher: WeightsPublisher, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), LearnerError> {
     serve(listener, publisher, ServeOptions::default(), shutdown).await
 }
 
 /// Binds `addr` (e.g. [`DEFAULT_WEIGHTS_LISTEN`]) and serves `publisher` on it; see [`serve`].
-pub async fn bind_and_serve(
-    addr: SocketAddr,
-    publisher: WeightsPublisher,
-    options: ServeOptions,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> Result<(), LearnerError> {
-    let listener = TcpListener::bind(addr)
-        .await
-        .map_err(|e| serve_error(addr.to_string(), format!("cannot bind: {e}")))?;
+pub async fn bind_and_serve(addr: SocketAddr, publisher: WeightsPublisher, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), LearnerError> {
+    let listener = TcpListener::bind(addr).await.map_err(|e| serve_error(addr.to_string(), format!("cannot bind: {e}")))?;
     serve(listener, publisher, options, shutdown).await
 }
 
 fn serve_error(addr: String, reason: String) -> LearnerError {
-    LearnerError::Grpc {
-        service: "weights",
-        endpoint: addr,
-        code: tonic::Code::Unavailable,
-        message: reason,
-    }
+    LearnerError::Grpc { service: "weights", endpoint: addr, code: tonic::Code::Unavailable, message: reason }
 }
 
 /// Serves the `WeightsService` over `publisher` on `listener` until `shutdown` resolves; then
@@ -421,15 +355,8 @@ fn serve_error(addr: String, reason: String) -> LearnerError {
 ///
 /// Refuses a non-loopback listener without both TLS and a bearer token. Messages are limited
 /// to [`MAX_MESSAGE_BYTES`] both ways.
-pub async fn serve(
-    listener: TcpListener,
-    publisher: WeightsPublisher,
-    options: ServeOptions,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> Result<(), LearnerError> {
-    let addr = listener
-        .local_addr()
-        .map_err(|e| serve_error("?".into(), format!("listener has no address: {e}")))?;
+pub async fn serve(listener: TcpListener, publisher: WeightsPublisher, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), LearnerError> {
+    let addr = listener.local_addr().map_err(|e| serve_error("?".into(), format!("listener has no address: {e}")))?;
     let security = &options.security;
     if !addr.ip().is_loopback() && (security.tls.is_none() || security.token.is_none()) {
         return Err(serve_error(
@@ -440,17 +367,11 @@ pub async fn serve(
         ));
     }
     let (stop_tx, stop_rx) = watch::channel(false);
-    let service = WeightsGrpc::new(&publisher)
-        .with_shutdown(stop_rx.clone())
-        .into_server();
+    let service = WeightsGrpc::new(&publisher).with_shutdown(stop_rx.clone()).into_server();
     let service = InterceptedService::new(service, BearerAuth::new(security.token.as_deref()));
-    let mut builder = Server::builder()
-        .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
-        .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
+    let mut builder = Server::builder().http2_keepalive_interval(Some(KEEPALIVE_INTERVAL)).http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
     if let Some(tls) = &security.tls {
-        builder = builder
-            .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key)))
-            .map_err(|e| serve_error(addr.to_string(), format!("TLS: {e}")))?;
+        builder = builder.tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key))).map_err(|e| serve_error(addr.to_string(), format!("TLS: {e}")))?;
     }
     info!(%addr, tls = security.tls.is_some(), token = security.token.is_some(), "weights gRPC serving");
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
@@ -459,9 +380,7 @@ pub async fn serve(
         info!("weights service shutting down: ending open streams");
         let _ = stop_tx.send(true);
     };
-    let serving = builder
-        .add_service(service)
-        .serve_with_incoming_shutdown(incoming, signal);
+    let serving = builder.add_service(service).serve_with_incoming_shutdown(incoming, signal);
     tokio::pin!(serving);
     let mut stopping = stop_rx;
     let grace = options.shutdown_grace;
@@ -491,14 +410,8 @@ pub struct WeightsSubscription(mapless_actor::weights::WeightsSubscription);
 
 /// Opens a Subscribe stream at `endpoint` for versions `>= min_version` (0 or 1: any).
 /// See [`mapless_actor::weights::subscribe`].
-pub async fn subscribe(
-    endpoint: &GrpcEndpoint,
-    min_version: u64,
-    subscriber_id: &str,
-) -> Result<WeightsSubscription, LearnerError> {
-    Ok(WeightsSubscription(
-        mapless_actor::weights::subscribe(endpoint, min_version, subscriber_id).await?,
-    ))
+pub async fn subscribe(endpoint: &GrpcEndpoint, min_version: u64, subscriber_id: &str) -> Result<WeightsSubscription, LearnerError> {
+    Ok(WeightsSubscription(mapless_actor::weights::subscribe(endpoint, min_version, subscriber_id).await?))
 }
 
 impl WeightsSubscription {
@@ -569,46 +482,18 @@ fn data_crc32<'a>(data: impl IntoIterator<Item = &'a [u8]>) -> String {
 /// with the reserved `mapless.` prefix.
 pub fn snapshot_to_safetensors(snapshot: &WeightsSnapshot) -> Result<Vec<u8>, LearnerError> {
     let origin = || format!("snapshot version {}", snapshot.version);
-    snapshot
-        .validate()
-        .map_err(|e| invalid(origin(), e.to_string()))?;
-    if let Some(key) = snapshot
-        .metadata
-        .keys()
-        .find(|k| k.starts_with(RESERVED_METADATA_PREFIX))
-    {
-        return Err(invalid(
-            origin(),
-            format!("metadata key `{key}` uses the reserved prefix `{RESERVED_METADATA_PREFIX}`"),
-        ));
+    snapshot.validate().map_err(|e| invalid(origin(), e.to_string()))?;
+    if let Some(key) = snapshot.metadata.keys().find(|k| k.starts_with(RESERVED_METADATA_PREFIX)) {
+        return Err(invalid(origin(), format!("metadata key `{key}` uses the reserved prefix `{RESERVED_METADATA_PREFIX}`")));
     }
-    let algorithm = algorithm_name(snapshot.algorithm).ok_or_else(|| {
-        invalid(
-            origin(),
-            format!("unknown algorithm {}", snapshot.algorithm),
-        )
-    })?;
+    let algorithm = algorithm_name(snapshot.algorithm).ok_or_else(|| invalid(origin(), format!("unknown algorithm {}", snapshot.algorithm)))?;
 
     let mut views = Vec::with_capacity(snapshot.tensors.len());
     for tensor in &snapshot.tensors {
         // validate() above guarantees a known dtype and a consistent byte length.
-        let dtype = Dtype::try_from(tensor.dtype)
-            .ok()
-            .and_then(to_st_dtype)
-            .ok_or_else(|| invalid(origin(), format!("tensor `{}`: unknown dtype", tensor.name)))?;
-        let shape = tensor
-            .shape
-            .iter()
-            .map(|&d| usize::try_from(d))
-            .collect::<Result<Vec<usize>, _>>()
-            .map_err(|_| {
-                invalid(
-                    origin(),
-                    format!("tensor `{}`: dimension exceeds usize", tensor.name),
-                )
-            })?;
-        let view = safetensors::tensor::TensorView::new(dtype, shape, &tensor.data)
-            .map_err(|e| invalid(origin(), format!("tensor `{}`: {e}", tensor.name)))?;
+        let dtype = Dtype::try_from(tensor.dtype).ok().and_then(to_st_dtype).ok_or_else(|| invalid(origin(), format!("tensor `{}`: unknown dtype", tensor.name)))?;
+        let shape = tensor.shape.iter().map(|&d| usize::try_from(d)).collect::<Result<Vec<usize>, _>>().map_err(|_| invalid(origin(), format!("tensor `{}`: dimension exceeds usize", tensor.name)))?;
+        let view = safetensors::tensor::TensorView::new(dtype, shape, &tensor.data).map_err(|e| invalid(origin(), format!("tensor `{}`: {e}", tensor.name)))?;
         views.push((tensor.name.as_str(), view));
     }
 
@@ -618,47 +503,19 @@ pub fn snapshot_to_safetensors(snapshot: &WeightsSnapshot) -> Result<Vec<u8>, Le
     metadata.insert(META_ALGORITHM.into(), algorithm.into());
     metadata.insert(META_OBS_DIM.into(), snapshot.obs_dim.to_string());
     metadata.insert(META_ACT_DIM.into(), snapshot.act_dim.to_string());
-    metadata.insert(
-        META_CREATED_UNIX_MS.into(),
-        snapshot.created_unix_ms.to_string(),
-    );
-    metadata.insert(
-        META_TENSOR_ORDER.into(),
-        serde_json::to_string(&order).map_err(|e| invalid(origin(), e.to_string()))?,
-    );
-    metadata.insert(
-        META_DATA_CRC32.into(),
-        data_crc32(snapshot.tensors.iter().map(|t| t.data.as_slice())),
-    );
-    safetensors::serialize(views, Some(metadata))
-        .map_err(|e| invalid(origin(), format!("safetensors: {e}")))
+    metadata.insert(META_CREATED_UNIX_MS.into(), snapshot.created_unix_ms.to_string());
+    metadata.insert(META_TENSOR_ORDER.into(), serde_json::to_string(&order).map_err(|e| invalid(origin(), e.to_string()))?);
+    metadata.insert(META_DATA_CRC32.into(), data_crc32(snapshot.tensors.iter().map(|t| t.data.as_slice())));
+    safetensors::serialize(views, Some(metadata)).map_err(|e| invalid(origin(), format!("safetensors: {e}")))
 }
 
-fn required<'a>(
-    metadata: &'a HashMap<String, String>,
-    key: &str,
-    origin: &dyn Fn() -> String,
-) -> Result<&'a str, LearnerError> {
-    metadata.get(key).map(String::as_str).ok_or_else(|| {
-        invalid(
-            origin(),
-            format!("`__metadata__` has no `{key}`; not a mapless weights file"),
-        )
-    })
+fn required<'a>(metadata: &'a HashMap<String, String>, key: &str, origin: &dyn Fn() -> String) -> Result<&'a str, LearnerError> {
+    metadata.get(key).map(String::as_str).ok_or_else(|| invalid(origin(), format!("`__metadata__` has no `{key}`; not a mapless weights file")))
 }
 
-fn parse_number<T: std::str::FromStr>(
-    metadata: &HashMap<String, String>,
-    key: &str,
-    origin: &dyn Fn() -> String,
-) -> Result<T, LearnerError> {
+fn parse_number<T: std::str::FromStr>(metadata: &HashMap<String, String>, key: &str, origin: &dyn Fn() -> String) -> Result<T, LearnerError> {
     let text = required(metadata, key, origin)?;
-    text.parse().map_err(|_| {
-        invalid(
-            origin(),
-            format!("`__metadata__.{key}` is `{text}`, not a number"),
-        )
-    })
+    text.parse().map_err(|_| invalid(origin(), format!("`__metadata__.{key}` is `{text}`, not a number")))
 }
 
 /// Decodes the bytes of a `.safetensors` file written by [`snapshot_to_safetensors`]. `origin`
@@ -668,107 +525,50 @@ fn parse_number<T: std::str::FromStr>(
 /// header, offsets that do not cover the data, a missing reserved key, a dtype the contract
 /// does not carry, a data checksum mismatch, or a snapshot that then fails
 /// [`WeightsSnapshot::validate`].
-pub fn snapshot_from_safetensors(
-    bytes: &[u8],
-    origin: &str,
-) -> Result<WeightsSnapshot, LearnerError> {
+pub fn snapshot_from_safetensors(bytes: &[u8], origin: &str) -> Result<WeightsSnapshot, LearnerError> {
     let origin_fn = || origin.to_owned();
     let origin_ref: &dyn Fn() -> String = &origin_fn;
-    let not_safetensors = |e: safetensors::SafeTensorError| {
-        invalid(origin, format!("not a valid .safetensors file: {e}"))
-    };
+    let not_safetensors = |e: safetensors::SafeTensorError| invalid(origin, format!("not a valid .safetensors file: {e}"));
     let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(not_safetensors)?;
     let file = safetensors::SafeTensors::deserialize(bytes).map_err(not_safetensors)?;
     let mut metadata = header.metadata().clone().unwrap_or_default();
 
     let version: u64 = parse_number(&metadata, META_VERSION, origin_ref)?;
     let algorithm_text = required(&metadata, META_ALGORITHM, origin_ref)?;
-    let algorithm = algorithm_from_name(algorithm_text).ok_or_else(|| {
-        invalid(
-            origin,
-            format!(
-                "`__metadata__.{META_ALGORITHM}` is `{algorithm_text}`; expected ddpg, td3 or sac"
-            ),
-        )
-    })?;
+    let algorithm = algorithm_from_name(algorithm_text).ok_or_else(|| invalid(origin, format!("`__metadata__.{META_ALGORITHM}` is `{algorithm_text}`; expected ddpg, td3 or sac")))?;
     let obs_dim: u32 = parse_number(&metadata, META_OBS_DIM, origin_ref)?;
     let act_dim: u32 = parse_number(&metadata, META_ACT_DIM, origin_ref)?;
     let created_unix_ms: u64 = parse_number(&metadata, META_CREATED_UNIX_MS, origin_ref)?;
     let order: Vec<String> = match metadata.get(META_TENSOR_ORDER) {
-        Some(text) => serde_json::from_str(text).map_err(|e| {
-            invalid(
-                origin,
-                format!("`__metadata__.{META_TENSOR_ORDER}` is not a JSON list of names: {e}"),
-            )
-        })?,
+        Some(text) => serde_json::from_str(text).map_err(|e| invalid(origin, format!("`__metadata__.{META_TENSOR_ORDER}` is not a JSON list of names: {e}")))?,
         // Written by another tool: file (offset) order.
         None => header.offset_keys(),
     };
     if order.len() != file.len() {
-        return Err(invalid(
-            origin,
-            format!(
-                "`__metadata__.{META_TENSOR_ORDER}` names {} tensors, the file holds {}",
-                order.len(),
-                file.len()
-            ),
-        ));
+        return Err(invalid(origin, format!("`__metadata__.{META_TENSOR_ORDER}` names {} tensors, the file holds {}", order.len(), file.len())));
     }
 
     let mut tensors = Vec::with_capacity(order.len());
     for name in order {
-        let view = file
-            .tensor(&name)
-            .map_err(|e| invalid(origin, e.to_string()))?;
-        let dtype = from_st_dtype(view.dtype()).ok_or_else(|| {
-            invalid(
-                origin,
-                format!(
-                    "tensor `{name}` has dtype {}; weights carry F32, F64, F16 or BF16",
-                    view.dtype()
-                ),
-            )
-        })?;
-        tensors.push(NamedTensor {
-            name,
-            shape: view.shape().iter().map(|&d| d as u64).collect(),
-            dtype: dtype as i32,
-            data: view.data().to_vec(),
-        });
+        let view = file.tensor(&name).map_err(|e| invalid(origin, e.to_string()))?;
+        let dtype = from_st_dtype(view.dtype()).ok_or_else(|| invalid(origin, format!("tensor `{name}` has dtype {}; weights carry F32, F64, F16 or BF16", view.dtype())))?;
+        tensors.push(NamedTensor { name, shape: view.shape().iter().map(|&d| d as u64).collect(), dtype: dtype as i32, data: view.data().to_vec() });
     }
     if let Some(expected) = metadata.get(META_DATA_CRC32) {
         let actual = data_crc32(tensors.iter().map(|t| t.data.as_slice()));
         if !expected.eq_ignore_ascii_case(&actual) {
-            return Err(invalid(
-                origin,
-                format!(
-                    "tensor data checksum is {actual}, the header says {expected}: the file is corrupt"
-                ),
-            ));
+            return Err(invalid(origin, format!("tensor data checksum is {actual}, the header says {expected}: the file is corrupt")));
         }
     }
     metadata.retain(|k, _| !k.starts_with(RESERVED_METADATA_PREFIX));
-    let snapshot = WeightsSnapshot {
-        protocol_version: ProtocolVersion::V1 as i32,
-        version,
-        algorithm: algorithm as i32,
-        created_unix_ms,
-        obs_dim,
-        act_dim,
-        tensors,
-        metadata: metadata.into_iter().collect(),
-    };
-    snapshot
-        .validate()
-        .map_err(|e| invalid(origin, e.to_string()))?;
+    let snapshot =
+        WeightsSnapshot { protocol_version: ProtocolVersion::V1 as i32, version, algorithm: algorithm as i32, created_unix_ms, obs_dim, act_dim, tensors, metadata: metadata.into_iter().collect() };
+    snapshot.validate().map_err(|e| invalid(origin, e.to_string()))?;
     Ok(snapshot)
 }
 
 fn io_error(path: &Path, error: std::io::Error) -> LearnerError {
-    LearnerError::FileIo {
-        path: path.to_owned(),
-        error,
-    }
+    LearnerError::FileIo { path: path.to_owned(), error }
 }
 
 /// Writes `bytes` to `path` atomically: a temporary file in the same directory (`tempfile`),
@@ -824,53 +624,22 @@ pub fn snapshot_from_tensors(
     metadata: HashMap<String, String>,
 ) -> Result<WeightsSnapshot, LearnerError> {
     let origin = || format!("tensors for version {version}");
-    let dim = |name: &str, d: usize| {
-        u32::try_from(d).map_err(|_| invalid(origin(), format!("{name} {d} exceeds u32")))
-    };
+    let dim = |name: &str, d: usize| u32::try_from(d).map_err(|_| invalid(origin(), format!("{name} {d} exceeds u32")));
     let mut named = Vec::with_capacity(tensors.len());
     for (name, tensor) in tensors {
         let kind = tensor.f_kind()?;
-        if !matches!(
-            kind,
-            tch::Kind::Float | tch::Kind::Double | tch::Kind::Half | tch::Kind::BFloat16
-        ) {
-            return Err(invalid(
-                origin(),
-                format!("tensor `{name}` has kind {kind:?}; weights are floating point"),
-            ));
+        if !matches!(kind, tch::Kind::Float | tch::Kind::Double | tch::Kind::Half | tch::Kind::BFloat16) {
+            return Err(invalid(origin(), format!("tensor `{name}` has kind {kind:?}; weights are floating point")));
         }
-        let cpu = tch::no_grad(|| {
-            tensor
-                .f_detach()?
-                .f_to_kind(tch::Kind::Float)?
-                .f_to_device(tch::Device::Cpu)?
-                .f_contiguous()
-        })?;
-        let shape = cpu
-            .size()
-            .iter()
-            .map(|&d| u64::try_from(d))
-            .collect::<Result<Vec<u64>, _>>()
-            .map_err(|_| {
-                invalid(
-                    origin(),
-                    format!("tensor `{name}` has a negative dimension"),
-                )
-            })?;
+        let cpu = tch::no_grad(|| tensor.f_detach()?.f_to_kind(tch::Kind::Float)?.f_to_device(tch::Device::Cpu)?.f_contiguous())?;
+        let shape = cpu.size().iter().map(|&d| u64::try_from(d)).collect::<Result<Vec<u64>, _>>().map_err(|_| invalid(origin(), format!("tensor `{name}` has a negative dimension")))?;
         let numel = cpu.numel();
         let mut values = vec![0f32; numel];
         cpu.f_copy_data(&mut values, numel)?;
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-            return Err(invalid(
-                origin(),
-                format!(
-                    "tensor `{name}` element {i} is {}; refusing to publish non-finite weights",
-                    values[i]
-                ),
-            ));
+            return Err(invalid(origin(), format!("tensor `{name}` element {i} is {}; refusing to publish non-finite weights", values[i])));
         }
-        let named_tensor = NamedTensor::from_f32(name.clone(), shape, &values)
-            .map_err(|e| invalid(origin(), e.to_string()))?;
+        let named_tensor = NamedTensor::from_f32(name.clone(), shape, &values).map_err(|e| invalid(origin(), e.to_string()))?;
         named.push(named_tensor);
     }
     let snapshot = WeightsSnapshot {
@@ -883,35 +652,19 @@ pub fn snapshot_from_tensors(
         tensors: named,
         metadata,
     };
-    snapshot
-        .validate()
-        .map_err(|e| invalid(origin(), e.to_string()))?;
+    snapshot.validate().map_err(|e| invalid(origin(), e.to_string()))?;
     Ok(snapshot)
 }
 
 /// The snapshot's tensors as CPU `tch` tensors (F32 only), in snapshot order, bit-exact.
-pub fn tensors_from_snapshot(
-    snapshot: &WeightsSnapshot,
-) -> Result<Vec<(String, tch::Tensor)>, LearnerError> {
+pub fn tensors_from_snapshot(snapshot: &WeightsSnapshot) -> Result<Vec<(String, tch::Tensor)>, LearnerError> {
     let origin = || format!("snapshot version {}", snapshot.version);
     snapshot
         .tensors
         .iter()
         .map(|t| {
-            let values = t
-                .to_f32_vec()
-                .map_err(|e| invalid(origin(), e.to_string()))?;
-            let shape = t
-                .shape
-                .iter()
-                .map(|&d| i64::try_from(d))
-                .collect::<Result<Vec<i64>, _>>()
-                .map_err(|_| {
-                    invalid(
-                        origin(),
-                        format!("tensor `{}`: dimension exceeds i64", t.name),
-                    )
-                })?;
+            let values = t.to_f32_vec().map_err(|e| invalid(origin(), e.to_string()))?;
+            let shape = t.shape.iter().map(|&d| i64::try_from(d)).collect::<Result<Vec<i64>, _>>().map_err(|_| invalid(origin(), format!("tensor `{}`: dimension exceeds i64", t.name)))?;
             let tensor = tch::Tensor::f_from_slice(&values)?.f_reshape(shape.as_slice())?;
             Ok((t.name.clone(), tensor))
         })

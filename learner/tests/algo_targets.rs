@@ -25,13 +25,7 @@ const H: usize = 4;
 const GAMMA: f64 = 0.9;
 
 fn cfg(kind: AlgorithmKind) -> LearnerConfig {
-    let mut c = LearnerConfig {
-        algorithm: kind,
-        hidden_width: H as i64,
-        gamma: GAMMA,
-        seed: 3,
-        ..LearnerConfig::default()
-    };
+    let mut c = LearnerConfig { algorithm: kind, hidden_width: H as i64, gamma: GAMMA, seed: 3, ..LearnerConfig::default() };
     c.sac.initial_alpha = 0.5;
     c
 }
@@ -61,10 +55,7 @@ fn linear_critics(prefix: &str, ks: &[f64]) -> Vec<(String, Tensor)> {
         (format!("{prefix}.l0.weight"), t(w0, &[k, inp, h])),
         (format!("{prefix}.l0.bias"), t(b0, &[k, 1, h])),
         (format!("{prefix}.l1.weight"), t(w1, &[k, h, h])),
-        (
-            format!("{prefix}.l1.bias"),
-            Tensor::zeros([k, 1, h], tch::kind::FLOAT_CPU),
-        ),
+        (format!("{prefix}.l1.bias"), Tensor::zeros([k, 1, h], tch::kind::FLOAT_CPU)),
         (format!("{prefix}.out.weight"), t(wo, &[k, h, 1])),
         (format!("{prefix}.out.bias"), t(bo, &[k, 1, 1])),
     ]
@@ -89,20 +80,14 @@ fn linear_actor(prefix: &str, out_bias: &[f64]) -> Vec<(String, Tensor)> {
         (format!("{prefix}.l0.weight"), t(w0, &[h, o])),
         (format!("{prefix}.l0.bias"), t(b0, &[h])),
         (format!("{prefix}.l1.weight"), t(w1, &[h, h])),
-        (
-            format!("{prefix}.l1.bias"),
-            Tensor::zeros([h], tch::kind::FLOAT_CPU),
-        ),
+        (format!("{prefix}.l1.bias"), Tensor::zeros([h], tch::kind::FLOAT_CPU)),
         (format!("{prefix}.out.weight"), t(wo, &[n, h])),
         (format!("{prefix}.out.bias"), t(bo, &[n])),
     ]
 }
 
 fn set(agent: &mut Agent, named: Vec<(String, Tensor)>) {
-    let refs: Vec<(&str, Tensor)> = named
-        .iter()
-        .map(|(n, t)| (n.as_str(), t.shallow_clone()))
-        .collect();
+    let refs: Vec<(&str, Tensor)> = named.iter().map(|(n, t)| (n.as_str(), t.shallow_clone())).collect();
     agent.set_tensors(&refs).unwrap();
 }
 
@@ -131,20 +116,13 @@ fn batch() -> Minibatch {
 }
 
 fn column(t: &Tensor) -> Vec<f64> {
-    Vec::<f32>::try_from(&t.reshape([-1]))
-        .unwrap()
-        .into_iter()
-        .map(f64::from)
-        .collect()
+    Vec::<f32>::try_from(&t.reshape([-1])).unwrap().into_iter().map(f64::from).collect()
 }
 
 fn assert_close(got: &[f64], want: &[f64], tol: f64) {
     assert_eq!(got.len(), want.len());
     for (i, (g, w)) in got.iter().zip(want).enumerate() {
-        assert!(
-            (g - w).abs() <= tol,
-            "row {i}: got {g}, want {w} (all: {got:?} vs {want:?})"
-        );
+        assert!((g - w).abs() <= tol, "row {i}: got {g}, want {w} (all: {got:?} vs {want:?})");
     }
 }
 
@@ -159,14 +137,10 @@ fn ddpg_target_uses_the_target_actor_and_critic_and_cuts_only_terminal_rows() {
     set(&mut agent, linear_critics("critic", &[100.0]));
     set(&mut agent, linear_actor("target_actor", &[0.0]));
     set(&mut agent, linear_critics("target_critic", &[0.25]));
-    let Agent::Ddpg(ddpg) = &agent else {
-        unreachable!()
-    };
+    let Agent::Ddpg(ddpg) = &agent else { unreachable!() };
     let b = batch();
     let y = column(&ddpg.td_target(&b));
-    let want: Vec<f64> = (0..3)
-        .map(|i| REWARD[i] + GAMMA * NOT_DONE[i] * (S0_NEXT[i].tanh() + 0.25))
-        .collect();
+    let want: Vec<f64> = (0..3).map(|i| REWARD[i] + GAMMA * NOT_DONE[i] * (S0_NEXT[i].tanh() + 0.25)).collect();
     assert_close(&y, &want, 1e-5);
     assert_eq!(y[1], -2.0, "terminal row: y = r exactly");
 }
@@ -179,14 +153,9 @@ fn weighted_critic_loss_and_td_errors_match_hand_values() {
     set(&mut agent, linear_critics("critic", &[-1.0])); // Q(s, a) = a − 1
     let b = batch();
     let stats = agent.update(&b).unwrap();
-    let y: Vec<f64> = (0..3)
-        .map(|i| REWARD[i] + GAMMA * NOT_DONE[i] * (S0_NEXT[i].tanh() + 0.25))
-        .collect();
+    let y: Vec<f64> = (0..3).map(|i| REWARD[i] + GAMMA * NOT_DONE[i] * (S0_NEXT[i].tanh() + 0.25)).collect();
     let td: Vec<f64> = (0..3).map(|i| (y[i] - (ACTION[i] - 1.0)).abs()).collect();
-    let loss: f64 = (0..3)
-        .map(|i| f64::from(WEIGHTS[i]) * td[i] * td[i])
-        .sum::<f64>()
-        / 3.0;
+    let loss: f64 = (0..3).map(|i| f64::from(WEIGHTS[i]) * td[i] * td[i]).sum::<f64>() / 3.0;
     let got_td: Vec<f64> = stats.td_errors.iter().map(|&v| f64::from(v)).collect();
     assert_close(&got_td, &td, 1e-5);
     let got = stats.get(metric::CRITIC_LOSS).unwrap();
@@ -201,14 +170,9 @@ fn td3_target_takes_the_min_of_twin_target_critics_at_the_clipped_smoothed_actio
     set(&mut agent, linear_actor("target_actor", &[0.0]));
     set(&mut agent, linear_critics("target_critic", &[0.25, -0.5]));
     set(&mut agent, linear_critics("critic", &[100.0, 100.0]));
-    let Agent::Td3(td3) = &agent else {
-        unreachable!()
-    };
+    let Agent::Td3(td3) = &agent else { unreachable!() };
     let eps = [0.5, -0.5, 0.3];
-    let y = column(&td3.td_target(
-        &batch(),
-        &t(eps.iter().map(|&e| e as f32).collect(), &[3, 1]),
-    ));
+    let y = column(&td3.td_target(&batch(), &t(eps.iter().map(|&e| e as f32).collect(), &[3, 1])));
     let want: Vec<f64> = (0..3)
         .map(|i| {
             let a = (S0_NEXT[i].tanh() + eps[i]).clamp(-1.0, 1.0);
@@ -223,31 +187,21 @@ fn td3_target_takes_the_min_of_twin_target_critics_at_the_clipped_smoothed_actio
 #[test]
 fn td3_smoothing_noise_is_gaussian_with_sigma_0_45_clipped_to_half() {
     let mut agent = Agent::new(&cfg(AlgorithmKind::Td3), OBS, ACT).unwrap();
-    let Agent::Td3(td3) = &mut agent else {
-        unreachable!()
-    };
+    let Agent::Td3(td3) = &mut agent else { unreachable!() };
     let eps = column(&td3.smoothing_noise(20_000));
     assert!(eps.iter().all(|e| e.abs() <= 0.5 + 1e-7));
     // P(|N(0, 0.45²)| > 0.5) = 2(1 − Φ(1.111)) ≈ 0.2666: that share sits exactly on ±0.5.
-    let clipped =
-        eps.iter().filter(|e| (e.abs() - 0.5).abs() < 1e-7).count() as f64 / eps.len() as f64;
+    let clipped = eps.iter().filter(|e| (e.abs() - 0.5).abs() < 1e-7).count() as f64 / eps.len() as f64;
     assert!((clipped - 0.2666).abs() < 0.015, "clipped share {clipped}");
     let inside: Vec<f64> = eps.iter().copied().filter(|e| e.abs() < 0.5).collect();
     let mean = inside.iter().sum::<f64>() / inside.len() as f64;
     assert!(mean.abs() < 0.01, "mean {mean}");
     // Different draws each call.
-    assert_ne!(
-        column(&td3.smoothing_noise(4)),
-        column(&td3.smoothing_noise(4))
-    );
+    assert_ne!(column(&td3.smoothing_noise(4)), column(&td3.smoothing_noise(4)));
 }
 
 fn state(agent: &Agent) -> HashMap<String, Vec<f64>> {
-    agent
-        .state_tensors()
-        .into_iter()
-        .map(|(n, t)| (n, column(&t)))
-        .collect()
+    agent.state_tensors().into_iter().map(|(n, t)| (n, column(&t))).collect()
 }
 
 fn prefixed<'a>(s: &'a HashMap<String, Vec<f64>>, prefix: &str) -> Vec<(&'a String, &'a Vec<f64>)> {
@@ -258,23 +212,14 @@ fn prefixed<'a>(s: &'a HashMap<String, Vec<f64>>, prefix: &str) -> Vec<(&'a Stri
 }
 
 /// θ_t after == θ_t before + τ(θ after − θ_t before), for every parameter of `net`.
-fn assert_soft_updated(
-    before: &HashMap<String, Vec<f64>>,
-    after: &HashMap<String, Vec<f64>>,
-    net: &str,
-    tau: f64,
-) {
+fn assert_soft_updated(before: &HashMap<String, Vec<f64>>, after: &HashMap<String, Vec<f64>>, net: &str, tau: f64) {
     for (name, online) in prefixed(after, &format!("{net}.")) {
         let target_name = format!("target_{name}");
         let old = &before[&target_name];
         let new = &after[&target_name];
         for i in 0..old.len() {
             let want = old[i] + tau * (online[i] - old[i]);
-            assert!(
-                (new[i] - want).abs() < 1e-6,
-                "{target_name}[{i}]: {} vs {want}",
-                new[i]
-            );
+            assert!((new[i] - want).abs() < 1e-6, "{target_name}[{i}]: {} vs {want}", new[i]);
         }
     }
 }
@@ -314,31 +259,19 @@ fn td3_updates_actor_and_targets_only_every_second_step() {
             assert_eq!(v, &s0[name], "{name} moved on update 1");
         }
     }
-    assert_ne!(
-        s1["critic.l0.weight"], s0["critic.l0.weight"],
-        "critics learn every update"
-    );
+    assert_ne!(s1["critic.l0.weight"], s0["critic.l0.weight"], "critics learn every update");
 
     let st2 = agent.update(&random_batch(2)).unwrap();
     let s2 = state(&agent);
     assert!(st2.get(metric::ACTOR_LOSS).is_some());
-    assert_ne!(
-        s2["actor.l0.weight"], s1["actor.l0.weight"],
-        "actor learns on update 2"
-    );
+    assert_ne!(s2["actor.l0.weight"], s1["actor.l0.weight"], "actor learns on update 2");
     assert_soft_updated(&s1, &s2, "actor", 0.1);
     assert_soft_updated(&s1, &s2, "critic", 0.1);
 
     let st3 = agent.update(&random_batch(3)).unwrap();
     assert!(st3.get(metric::ACTOR_LOSS).is_none());
     assert_eq!(state(&agent)["actor.out.bias"], s2["actor.out.bias"]);
-    assert!(
-        agent
-            .update(&random_batch(4))
-            .unwrap()
-            .get(metric::ACTOR_LOSS)
-            .is_some()
-    );
+    assert!(agent.update(&random_batch(4)).unwrap().get(metric::ACTOR_LOSS).is_some());
 }
 
 /// ln π(a|s) by the textbook formula in f64: Gaussian density of u minus ln(1 − tanh²u).
@@ -347,9 +280,7 @@ fn log_prob_closed_form(mean: &[f64], log_std: &[f64], eps: &[f64]) -> f64 {
         .map(|j| {
             let sigma = log_std[j].exp();
             let u = mean[j] + sigma * eps[j];
-            let gauss = -((u - mean[j]) / sigma).powi(2) / 2.0
-                - sigma.ln()
-                - (2.0 * std::f64::consts::PI).sqrt().ln();
+            let gauss = -((u - mean[j]) / sigma).powi(2) / 2.0 - sigma.ln() - (2.0 * std::f64::consts::PI).sqrt().ln();
             // 1 − tanh² = sech², computed without cancellation.
             let log_sech2 = 2.0 * (2.0 / (u.exp() + (-u).exp())).ln();
             gauss - log_sech2
@@ -370,10 +301,7 @@ fn sac_log_prob_includes_the_tanh_correction_and_matches_the_closed_form() {
         let s = tanh_gaussian(&f(mean), &f(log_std), &f(eps));
         let got = s.log_prob.double_value(&[0, 0]);
         let want = log_prob_closed_form(&mean, &log_std, &eps);
-        assert!(
-            (got - want).abs() < 1e-4 * want.abs().max(1.0),
-            "{mean:?}: {got} vs {want}"
-        );
+        assert!((got - want).abs() < 1e-4 * want.abs().max(1.0), "{mean:?}: {got} vs {want}");
         let a = column(&s.action);
         for j in 0..2 {
             assert!((a[j] - (mean[j] + log_std[j].exp() * eps[j]).tanh()).abs() < 1e-6);
@@ -392,16 +320,11 @@ fn sac_target_is_the_entropy_regularised_min_over_target_critics() {
     set(&mut agent, linear_actor("actor", &[0.0, c]));
     set(&mut agent, linear_critics("target_critic", &[0.25, -0.5]));
     set(&mut agent, linear_critics("critic", &[100.0, 100.0]));
-    let Agent::Sac(sac) = &agent else {
-        unreachable!()
-    };
+    let Agent::Sac(sac) = &agent else { unreachable!() };
     assert!((sac.alpha() - 0.5).abs() < 1e-7);
     assert_eq!(sac.target_entropy(), -1.0, "default H = −act_dim");
     let eps = [0.3, -1.2, 0.8];
-    let y = column(&sac.td_target(
-        &batch(),
-        &t(eps.iter().map(|&e| e as f32).collect(), &[3, 1]),
-    ));
+    let y = column(&sac.td_target(&batch(), &t(eps.iter().map(|&e| e as f32).collect(), &[3, 1])));
     let want: Vec<f64> = (0..3)
         .map(|i| {
             let u = S0_NEXT[i] + c.exp() * eps[i];
@@ -418,11 +341,7 @@ fn alpha_after_one_update(log_std: f64) -> (f64, f64, f64) {
     set(&mut agent, linear_actor("actor", &[0.0, log_std]));
     let before = agent.alpha().unwrap();
     let stats = agent.update(&random_batch(5)).unwrap();
-    (
-        before,
-        agent.alpha().unwrap(),
-        stats.get(metric::ENTROPY).unwrap(),
-    )
+    (before, agent.alpha().unwrap(), stats.get(metric::ENTROPY).unwrap())
 }
 
 #[test]
@@ -486,8 +405,7 @@ fn published_policy_layout_reproduces_deterministic_actions() {
             })
             .unwrap();
         let policy = agent.policy_tensors();
-        let names: Vec<(&str, Vec<i64>)> =
-            policy.iter().map(|(n, t)| (n.as_str(), t.size())).collect();
+        let names: Vec<(&str, Vec<i64>)> = policy.iter().map(|(n, t)| (n.as_str(), t.size())).collect();
         let k = if kind == AlgorithmKind::Sac { 4 } else { 2 };
         assert_eq!(
             names,
@@ -501,19 +419,12 @@ fn published_policy_layout_reproduces_deterministic_actions() {
             ],
             "{kind:?}"
         );
-        assert!(
-            policy
-                .iter()
-                .all(|(_, t)| t.device() == tch::Device::Cpu && t.kind() == tch::Kind::Float)
-        );
+        assert!(policy.iter().all(|(_, t)| t.device() == tch::Device::Cpu && t.kind() == tch::Kind::Float));
         let obs = [0.3f32, -0.8, 1.5];
         let got = agent.act_slice(&obs, false).unwrap();
         let want = infer(&policy, &obs, 2, kind == AlgorithmKind::Sac);
         for j in 0..2 {
-            assert!(
-                (f64::from(got[j]) - want[j]).abs() < 1e-5,
-                "{kind:?}: {got:?} vs {want:?}"
-            );
+            assert!((f64::from(got[j]) - want[j]).abs() < 1e-5, "{kind:?}: {got:?} vs {want:?}");
         }
         // Exploring actions stay in the box and differ from the greedy ones.
         let explored = agent.act_slice(&obs, true).unwrap();
@@ -521,18 +432,8 @@ fn published_policy_layout_reproduces_deterministic_actions() {
         assert_ne!(explored, got);
         let meta = agent.policy_metadata();
         assert_eq!(meta["algorithm"], kind.as_str());
-        assert_eq!(
-            (
-                meta["obs_dim"].as_str(),
-                meta["act_dim"].as_str(),
-                meta["version"].as_str()
-            ),
-            ("3", "2", "1")
-        );
-        assert_eq!(
-            meta.contains_key("sac.log_std_min"),
-            kind == AlgorithmKind::Sac
-        );
+        assert_eq!((meta["obs_dim"].as_str(), meta["act_dim"].as_str(), meta["version"].as_str()), ("3", "2", "1"));
+        assert_eq!(meta.contains_key("sac.log_std_min"), kind == AlgorithmKind::Sac);
     }
 }
 
@@ -549,11 +450,7 @@ fn same_seed_same_updates_bit_for_bit_and_other_seeds_differ() {
             state(&agent)
         };
         assert_eq!(run(1), run(1), "{kind:?}");
-        assert_ne!(
-            run(1)["actor.l0.weight"],
-            run(2)["actor.l0.weight"],
-            "{kind:?}"
-        );
+        assert_ne!(run(1)["actor.l0.weight"], run(2)["actor.l0.weight"], "{kind:?}");
     }
 }
 
@@ -566,21 +463,9 @@ fn bad_batches_and_observations_are_errors_not_panics() {
     assert!(e.to_string().contains("obs_dim 3"), "{e}");
     assert!(agent.act_slice(&[0.1, f32::NAN], false).is_err());
     assert!(agent.act_slice(&[0.1, 0.2, 0.3], false).is_err());
-    assert!(
-        agent
-            .act(&Tensor::zeros([2, 5], tch::kind::FLOAT_CPU), false)
-            .is_err()
-    );
-    assert!(
-        agent
-            .set_tensors(&[("actor.nope", Tensor::zeros([1], tch::kind::FLOAT_CPU))])
-            .is_err()
-    );
-    assert!(
-        agent
-            .set_tensors(&[("actor.l0.bias", Tensor::zeros([1], tch::kind::FLOAT_CPU))])
-            .is_err()
-    );
+    assert!(agent.act(&Tensor::zeros([2, 5], tch::kind::FLOAT_CPU), false).is_err());
+    assert!(agent.set_tensors(&[("actor.nope", Tensor::zeros([1], tch::kind::FLOAT_CPU))]).is_err());
+    assert!(agent.set_tensors(&[("actor.l0.bias", Tensor::zeros([1], tch::kind::FLOAT_CPU))]).is_err());
     assert_eq!(agent.updates(), 0);
     // A diverged critic (an infinite weight) is reported, not applied.
     let mut c = cfg(AlgorithmKind::Ddpg);
@@ -604,25 +489,11 @@ fn bad_batches_and_observations_are_errors_not_panics() {
 /// it (its gradient is cut).
 #[test]
 fn fused_updates_match_autograd() {
-    for (kind, log_std_max) in [
-        (AlgorithmKind::Sac, 2.0),
-        (AlgorithmKind::Sac, 0.02),
-        (AlgorithmKind::Td3, 2.0),
-        (AlgorithmKind::Ddpg, 2.0),
-    ] {
+    for (kind, log_std_max) in [(AlgorithmKind::Sac, 2.0), (AlgorithmKind::Sac, 0.02), (AlgorithmKind::Td3, 2.0), (AlgorithmKind::Ddpg, 2.0)] {
         let (obs, act, rows) = (5usize, 2usize, 24usize);
         let make = |fused: bool| {
-            let mut c = LearnerConfig {
-                algorithm: kind,
-                hidden_width: 32,
-                seed: 11,
-                tau: 0.05,
-                actor_lr: 1e-3,
-                critic_lr: 1e-3,
-                fused_update: fused,
-                grad_clip_norm: Some(0.5),
-                ..LearnerConfig::default()
-            };
+            let mut c =
+                LearnerConfig { algorithm: kind, hidden_width: 32, seed: 11, tau: 0.05, actor_lr: 1e-3, critic_lr: 1e-3, fused_update: fused, grad_clip_norm: Some(0.5), ..LearnerConfig::default() };
             c.sac.log_std_max = log_std_max;
             c.sac.alpha_lr = 1e-2;
             Agent::new(&c, obs, act).unwrap()
@@ -631,30 +502,11 @@ fn fused_updates_match_autograd() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
         let mut last = None;
         for step in 0..6 {
-            let mut u = |n: usize, lo: f32, hi: f32| -> Vec<f32> {
-                (0..n).map(|_| rand::Rng::random_range(&mut rng, lo..hi)).collect()
-            };
-            let (o, o2, a, r, w) = (
-                u(rows * obs, -1.0, 1.0),
-                u(rows * obs, -1.0, 1.0),
-                u(rows * act, -1.0, 1.0),
-                u(rows, -1.0, 1.0),
-                u(rows, 0.2, 1.0),
-            );
+            let mut u = |n: usize, lo: f32, hi: f32| -> Vec<f32> { (0..n).map(|_| rand::Rng::random_range(&mut rng, lo..hi)).collect() };
+            let (o, o2, a, r, w) = (u(rows * obs, -1.0, 1.0), u(rows * obs, -1.0, 1.0), u(rows * act, -1.0, 1.0), u(rows, -1.0, 1.0), u(rows, 0.2, 1.0));
             let terminal: Vec<bool> = (0..rows).map(|i| i % 5 == 0).collect();
             let b = Minibatch::from_columns(
-                mapless_learner::batch::BatchColumns {
-                    rows,
-                    obs_dim: obs,
-                    act_dim: act,
-                    obs: &o,
-                    action: &a,
-                    reward: &r,
-                    next_obs: &o2,
-                    terminal: &terminal,
-                    importance_weights: &w,
-                    keys: &[],
-                },
+                mapless_learner::batch::BatchColumns { rows, obs_dim: obs, act_dim: act, obs: &o, action: &a, reward: &r, next_obs: &o2, terminal: &terminal, importance_weights: &w, keys: &[] },
                 tch::Device::Cpu,
             )
             .unwrap();
@@ -666,10 +518,7 @@ fn fused_updates_match_autograd() {
                 assert_eq!(nf, na);
                 assert!((vf - va).abs() <= 1e-6 * (1.0 + va.abs()), "{kind:?} step {step} {nf}: {vf} vs {va}");
             }
-            let (tf, ta): (Vec<f64>, Vec<f64>) = (
-                sf.td_errors.iter().map(|&v| f64::from(v)).collect(),
-                sa.td_errors.iter().map(|&v| f64::from(v)).collect(),
-            );
+            let (tf, ta): (Vec<f64>, Vec<f64>) = (sf.td_errors.iter().map(|&v| f64::from(v)).collect(), sa.td_errors.iter().map(|&v| f64::from(v)).collect());
             assert_close(&tf, &ta, 1e-6);
         }
         let (sf, sa) = (state(&fused), state(&autograd));
@@ -690,13 +539,7 @@ fn fused_updates_match_autograd() {
         // on batches it cannot read, which would make the two agents bit-identical).
         assert!(worst.0 > 0.0, "{kind:?}: the two paths are bit-identical");
         // A diverged critic: both paths refuse the update with the same error and counter.
-        let shape = fused
-            .state_tensors()
-            .into_iter()
-            .find(|(n, _)| n == "critic.out.bias")
-            .unwrap()
-            .1
-            .size();
+        let shape = fused.state_tensors().into_iter().find(|(n, _)| n == "critic.out.bias").unwrap().1.size();
         let n: i64 = shape.iter().product();
         let nan = Tensor::from_slice(&vec![f32::NAN; n as usize]).view(shape.as_slice());
         let b = last.unwrap();

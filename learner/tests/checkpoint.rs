@@ -18,27 +18,16 @@ use rand::SeedableRng;
 const ALL: [AlgorithmKind; 3] = [AlgorithmKind::Ddpg, AlgorithmKind::Td3, AlgorithmKind::Sac];
 
 fn cfg(algorithm: AlgorithmKind) -> LearnerConfig {
-    LearnerConfig {
-        algorithm,
-        hidden_width: 16,
-        seed: 11,
-        ..LearnerConfig::default()
-    }
+    LearnerConfig { algorithm, hidden_width: 16, seed: 11, ..LearnerConfig::default() }
 }
 
 fn batches(n: usize) -> Vec<Minibatch> {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(4);
-    (0..n)
-        .map(|_| Minibatch::random(32, 5, 2, &mut rng, tch::Device::Cpu).unwrap())
-        .collect()
+    (0..n).map(|_| Minibatch::random(32, 5, 2, &mut rng, tch::Device::Cpu).unwrap()).collect()
 }
 
 fn state(agent: &Agent) -> HashMap<String, Vec<f32>> {
-    agent
-        .state_tensors()
-        .into_iter()
-        .map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap()))
-        .collect()
+    agent.state_tensors().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap())).collect()
 }
 
 fn trained(algorithm: AlgorithmKind, updates: usize) -> Agent {
@@ -72,16 +61,8 @@ fn a_loaded_checkpoint_continues_exactly_like_the_original() {
             let r = restored.update(b).unwrap();
             assert_eq!(a, r, "{algorithm:?}: stats differ after resume");
         }
-        assert_eq!(
-            state(&restored),
-            state(&original),
-            "{algorithm:?} after 3 more updates"
-        );
-        assert_eq!(
-            restored.act_slice(&[0.2; 5], true).unwrap(),
-            original.act_slice(&[0.2; 5], true).unwrap(),
-            "{algorithm:?}: exploration noise resumes too"
-        );
+        assert_eq!(state(&restored), state(&original), "{algorithm:?} after 3 more updates");
+        assert_eq!(restored.act_slice(&[0.2; 5], true).unwrap(), original.act_slice(&[0.2; 5], true).unwrap(), "{algorithm:?}: exploration noise resumes too");
 
         // restore() into an agent built from the same config does the same.
         let mut fresh = Agent::new(&cfg(algorithm), 5, 2).unwrap();
@@ -101,36 +82,12 @@ fn the_policy_file_holds_the_actor_alone_with_its_metadata() {
         let p = checkpoint::read_policy(&file).unwrap();
         let m = &p.metadata;
         assert_eq!(m["algorithm"], "sac");
-        assert_eq!(
-            (
-                m["obs_dim"].as_str(),
-                m["act_dim"].as_str(),
-                m["version"].as_str()
-            ),
-            ("5", "2", "2")
-        );
-        assert_eq!(
-            (m["sac.log_std_min"].as_str(), m["sac.log_std_max"].as_str()),
-            ("-20", "2")
-        );
+        assert_eq!((m["obs_dim"].as_str(), m["act_dim"].as_str(), m["version"].as_str()), ("5", "2", "2"));
+        assert_eq!((m["sac.log_std_min"].as_str(), m["sac.log_std_max"].as_str()), ("-20", "2"));
         assert_eq!(m["format"], "mapless-policy");
         let names: Vec<&str> = p.tensors.iter().map(|t| t.0.as_str()).collect();
-        assert_eq!(
-            names,
-            [
-                "actor.l0.bias",
-                "actor.l0.weight",
-                "actor.l1.bias",
-                "actor.l1.weight",
-                "actor.out.bias",
-                "actor.out.weight"
-            ]
-        );
-        let want: HashMap<String, Vec<f32>> = agent
-            .policy_tensors()
-            .into_iter()
-            .map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap()))
-            .collect();
+        assert_eq!(names, ["actor.l0.bias", "actor.l0.weight", "actor.l1.bias", "actor.l1.weight", "actor.out.bias", "actor.out.weight"]);
+        let want: HashMap<String, Vec<f32>> = agent.policy_tensors().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap())).collect();
         for (name, shape, values) in &p.tensors {
             assert_eq!(values, &want[name], "{name}");
             if name == "actor.out.weight" {
@@ -142,13 +99,7 @@ fn the_policy_file_holds_the_actor_alone_with_its_metadata() {
 
 fn saved(algorithm: AlgorithmKind) -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().unwrap();
-    let path = checkpoint::save(
-        dir.path(),
-        &trained(algorithm, 1),
-        &serde_json::Value::Null,
-        1,
-    )
-    .unwrap();
+    let path = checkpoint::save(dir.path(), &trained(algorithm, 1), &serde_json::Value::Null, 1).unwrap();
     (dir, path)
 }
 
@@ -188,41 +139,24 @@ fn other_algorithms_dimensions_and_format_versions_are_mismatches() {
     let (_d, path) = saved(AlgorithmKind::Sac);
     let mut td3 = Agent::new(&cfg(AlgorithmKind::Td3), 5, 2).unwrap();
     let e = checkpoint::restore(&mut td3, &path).unwrap_err();
-    assert!(
-        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "algorithm"),
-        "{e}"
-    );
-    assert!(
-        e.to_string().contains("algorithm is sac, expected td3"),
-        "{e}"
-    );
+    assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "algorithm"), "{e}");
+    assert!(e.to_string().contains("algorithm is sac, expected td3"), "{e}");
 
     let mut wide = Agent::new(&cfg(AlgorithmKind::Sac), 6, 2).unwrap();
     let e = checkpoint::restore(&mut wide, &path).unwrap_err();
-    assert!(
-        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "obs_dim"),
-        "{e}"
-    );
+    assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "obs_dim"), "{e}");
 
     let mut c = cfg(AlgorithmKind::Sac);
     c.hidden_width = 32;
     let mut bigger = Agent::new(&c, 5, 2).unwrap();
     let e = checkpoint::restore(&mut bigger, &path).unwrap_err();
-    assert!(
-        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "hidden_width"),
-        "{e}"
-    );
+    assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "hidden_width"), "{e}");
 
     let manifest = path.join(MANIFEST);
-    let text = fs::read_to_string(&manifest)
-        .unwrap()
-        .replace("\"format_version\": 1", "\"format_version\": 2");
+    let text = fs::read_to_string(&manifest).unwrap().replace("\"format_version\": 1", "\"format_version\": 2");
     fs::write(&manifest, text).unwrap();
     let e = checkpoint::load(&path, None).unwrap_err();
-    assert!(
-        matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "format version"),
-        "{e}"
-    );
+    assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "format version"), "{e}");
 }
 
 #[test]
@@ -235,11 +169,7 @@ fn missing_pieces_are_errors_and_latest_always_names_a_complete_checkpoint() {
     let first = checkpoint::save(root.path(), &agent, &serde_json::Value::Null, 2).unwrap();
     // A crash while writing the next one leaves only a temporary directory behind.
     fs::create_dir_all(root.path().join(".ckpt-000000000002.tmp")).unwrap();
-    fs::write(
-        root.path().join(".ckpt-000000000002.tmp").join(TENSORS),
-        b"half",
-    )
-    .unwrap();
+    fs::write(root.path().join(".ckpt-000000000002.tmp").join(TENSORS), b"half").unwrap();
     assert_eq!(checkpoint::resolve(root.path()).unwrap(), first);
     assert_eq!(checkpoint::load(root.path(), None).unwrap().0.updates(), 1);
 
@@ -247,33 +177,14 @@ fn missing_pieces_are_errors_and_latest_always_names_a_complete_checkpoint() {
         agent.update(&b).unwrap();
         checkpoint::save(root.path(), &agent, &serde_json::Value::Null, 2).unwrap();
     }
-    let mut kept: Vec<String> = fs::read_dir(root.path())
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .filter(|n| n.starts_with("ckpt-"))
-        .collect();
+    let mut kept: Vec<String> = fs::read_dir(root.path()).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).filter(|n| n.starts_with("ckpt-")).collect();
     kept.sort();
-    assert_eq!(
-        kept,
-        ["ckpt-000000000003", "ckpt-000000000004"],
-        "pruned to the newest 2"
-    );
-    assert_eq!(
-        fs::read_to_string(root.path().join(LATEST)).unwrap().trim(),
-        "ckpt-000000000004"
-    );
-    assert!(
-        !root.path().join(".ckpt-000000000002.tmp").exists(),
-        "stale temporary removed"
-    );
+    assert_eq!(kept, ["ckpt-000000000003", "ckpt-000000000004"], "pruned to the newest 2");
+    assert_eq!(fs::read_to_string(root.path().join(LATEST)).unwrap().trim(), "ckpt-000000000004");
+    assert!(!root.path().join(".ckpt-000000000002.tmp").exists(), "stale temporary removed");
 
     // Writing over an existing directory is refused; a missing file is corrupt.
-    let e = checkpoint::write_checkpoint(
-        &root.path().join("ckpt-000000000004"),
-        &agent,
-        &serde_json::Value::Null,
-    )
-    .unwrap_err();
+    let e = checkpoint::write_checkpoint(&root.path().join("ckpt-000000000004"), &agent, &serde_json::Value::Null).unwrap_err();
     assert!(matches!(e, LearnerError::CheckpointIo { .. }), "{e}");
     fs::remove_file(root.path().join("ckpt-000000000004").join(POLICY)).unwrap();
     let e = checkpoint::load(root.path(), None).unwrap_err();
@@ -310,13 +221,7 @@ fn run(algorithm: AlgorithmKind, resume_at: Option<u64>) -> (HashMap<String, Vec
             let table = Harness::persistent_table(&cfg, table_dir.path(), SEED);
             let (agent, extra) = checkpoint::load(ckpt_dir.path(), None).unwrap();
             let s: LoopState = serde_json::from_str(extra.as_str().unwrap()).unwrap();
-            h = Harness {
-                agent,
-                table,
-                s,
-                learning_starts: LEARNING_STARTS,
-                batch: cfg.batch_size,
-            };
+            h = Harness { agent, table, s, learning_starts: LEARNING_STARTS, batch: cfg.batch_size };
         }
         h.step();
     }
@@ -324,11 +229,7 @@ fn run(algorithm: AlgorithmKind, resume_at: Option<u64>) -> (HashMap<String, Vec
     (state(&h.agent), returns)
 }
 
-fn assert_same(
-    a: &(HashMap<String, Vec<f32>>, Vec<f64>),
-    b: &(HashMap<String, Vec<f32>>, Vec<f64>),
-    what: &str,
-) {
+fn assert_same(a: &(HashMap<String, Vec<f32>>, Vec<f64>), b: &(HashMap<String, Vec<f32>>, Vec<f64>), what: &str) {
     assert_eq!(a.1, b.1, "{what}: episode returns differ");
     assert_eq!(a.0.len(), b.0.len());
     for (name, v) in &a.0 {

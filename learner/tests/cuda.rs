@@ -1,10 +1,10 @@
 //! `--device cuda`: the same updates on an NVIDIA GPU. On a machine without one the test says
 //! so and checks that asking for CUDA is a clear error rather than a crash.
 
+use mapless_learner::LearnerError;
 use mapless_learner::algo::{Agent, metric};
 use mapless_learner::batch::Minibatch;
 use mapless_learner::config::{AlgorithmKind, LearnerConfig};
-use mapless_learner::LearnerError;
 use rand::SeedableRng;
 
 #[test]

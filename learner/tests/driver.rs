@@ -41,7 +41,18 @@ fn table() -> Arc<Table> {
             let obs: Vec<f32> = (0..OBS).map(|_| rng.random_range(-1.0..1.0)).collect();
             let next: Vec<f32> = (0..OBS).map(|_| rng.random_range(-1.0..1.0)).collect();
             let action: Vec<f32> = (0..ACT).map(|_| rng.random_range(-1.0..1.0)).collect();
-            b.push(Transition { obs: &obs, action: &action, reward: rng.random_range(-1.0..1.0), next_obs: &next, terminal: i % 17 == 16, truncated: i % 23 == 22, episode_id: seq, step: i, policy_version: 0 }).unwrap();
+            b.push(Transition {
+                obs: &obs,
+                action: &action,
+                reward: rng.random_range(-1.0..1.0),
+                next_obs: &next,
+                terminal: i % 17 == 16,
+                truncated: i % 23 == 22,
+                episode_id: seq,
+                step: i,
+                policy_version: 0,
+            })
+            .unwrap();
         }
         table.insert(&b.finish("actor-test", seq), None).unwrap();
     }
@@ -56,11 +67,7 @@ fn driver_publishes_every_k_updates_checkpoints_and_a_resumed_driver_continues_t
     let cfg = DriverConfig { publish_every: 10, metrics_every: 5, ..DriverConfig::default() };
     let agent = Agent::new(&config(AlgorithmKind::Sac), OBS, ACT).unwrap();
     let source = Box::new(InProcess::new(Arc::clone(&table), 16).unwrap());
-    let mut driver = Driver::new(agent, source, publisher.clone(), cfg.clone(), 0)
-        .unwrap()
-        .with_checkpoints(dir.path().join("checkpoints"))
-        .with_tensorboard(&dir.path().join("tb"))
-        .unwrap();
+    let mut driver = Driver::new(agent, source, publisher.clone(), cfg.clone(), 0).unwrap().with_checkpoints(dir.path().join("checkpoints")).with_tensorboard(&dir.path().join("tb")).unwrap();
     let report = driver.run(&AtomicBool::new(false), Some(25)).unwrap();
     // Version 1 before the first update (actors need a policy), then after updates 10 and 20,
     // and the final policy after update 25.

@@ -23,13 +23,7 @@ fn two_lanes_update_bit_for_bit_as_one() {
     }
     let (obs, act, rows) = (17usize, 2usize, 64usize);
     for kind in [AlgorithmKind::Sac, AlgorithmKind::Td3, AlgorithmKind::Ddpg] {
-        let cfg = LearnerConfig {
-            algorithm: kind,
-            hidden_width: 96,
-            seed: 5,
-            grad_clip_norm: Some(0.5),
-            ..LearnerConfig::default()
-        };
+        let cfg = LearnerConfig { algorithm: kind, hidden_width: 96, seed: 5, grad_clip_norm: Some(0.5), ..LearnerConfig::default() };
         // Each agent picks its lanes at its first update, from the thread count then.
         threads(1);
         let mut one = Agent::new(&cfg, obs, act).unwrap();

@@ -12,10 +12,7 @@ const THRESHOLD: f64 = -250.0;
 fn learns(algorithm: AlgorithmKind, budget: u64) {
     let (steps, best, secs, scores) = common::train_until(algorithm, 1, THRESHOLD, budget, 1_000);
     eprintln!("{algorithm:?}: {steps} steps, best {best:.1}, {secs:.1} s, evaluations {scores:?}");
-    assert!(
-        best >= THRESHOLD,
-        "{algorithm:?} reached only {best:.1} in {steps} steps (evaluations: {scores:?})"
-    );
+    assert!(best >= THRESHOLD, "{algorithm:?} reached only {best:.1} in {steps} steps (evaluations: {scores:?})");
 }
 
 #[test]

@@ -4,10 +4,7 @@
 use std::time::Duration;
 
 use mapless_learner::LearnerError;
-use mapless_learner::tensorboard::{
-    Event, FILE_VERSION, Scalar, SummaryWriter, crc32c, frame_record, masked_crc32c, read_events,
-    read_records, read_scalars,
-};
+use mapless_learner::tensorboard::{Event, FILE_VERSION, Scalar, SummaryWriter, crc32c, frame_record, masked_crc32c, read_events, read_records, read_scalars};
 use prost::Message as _;
 
 #[test]
@@ -25,10 +22,7 @@ fn crc32c_matches_the_castagnoli_check_values() {
     assert_ne!(crc32c(b"123456789"), crc32fast::hash(b"123456789"));
     // The TFRecord mask: rotate right by 15, add 0xa282ead8.
     let c = crc32c(b"abc");
-    assert_eq!(
-        masked_crc32c(b"abc"),
-        ((c >> 15) | (c << 17)).wrapping_add(0xa282_ead8)
-    );
+    assert_eq!(masked_crc32c(b"abc"), ((c >> 15) | (c << 17)).wrapping_add(0xa282_ead8));
 }
 
 #[test]
@@ -37,10 +31,7 @@ fn frame_record_lays_out_length_crc_data_crc() {
     frame_record(b"hello", &mut out);
     assert_eq!(out.len(), 8 + 4 + 5 + 4);
     assert_eq!(&out[..8], &5u64.to_le_bytes());
-    assert_eq!(
-        &out[8..12],
-        &masked_crc32c(&5u64.to_le_bytes()).to_le_bytes()
-    );
+    assert_eq!(&out[8..12], &masked_crc32c(&5u64.to_le_bytes()).to_le_bytes());
     assert_eq!(&out[12..17], b"hello");
     assert_eq!(&out[17..], &masked_crc32c(b"hello").to_le_bytes());
 }
@@ -61,27 +52,14 @@ fn scalars_written_are_read_back_exactly_with_valid_crcs() {
         let mut writer = SummaryWriter::create(&dir.path().join("run1")).expect("create");
         path = writer.path().to_owned();
         for (tag, step, value) in written {
-            writer
-                .add_scalar_at(tag, step, value, 1_700_000_000.5 + step as f64)
-                .expect("add");
+            writer.add_scalar_at(tag, step, value, 1_700_000_000.5 + step as f64).expect("add");
         }
         // Dropping the writer flushes what is buffered.
     }
-    let name = path
-        .file_name()
-        .expect("name")
-        .to_string_lossy()
-        .into_owned();
+    let name = path.file_name().expect("name").to_string_lossy().into_owned();
     assert!(name.starts_with("events.out.tfevents."), "{name}");
-    let secs: &str = name
-        .trim_start_matches("events.out.tfevents.")
-        .split('.')
-        .next()
-        .expect("secs");
-    assert!(
-        secs.len() >= 10 && secs.chars().all(|c| c.is_ascii_digit()),
-        "{name}"
-    );
+    let secs: &str = name.trim_start_matches("events.out.tfevents.").split('.').next().expect("secs");
+    assert!(secs.len() >= 10 && secs.chars().all(|c| c.is_ascii_digit()), "{name}");
 
     let events = read_events(&path).expect("every CRC checks out");
     assert_eq!(events.len(), written.len() + 1);
@@ -90,15 +68,7 @@ fn scalars_written_are_read_back_exactly_with_valid_crcs() {
     assert!(events[0].wall_time > 1.6e9, "wall time is now, in seconds");
 
     let scalars = read_scalars(&path).expect("scalars");
-    let expected: Vec<Scalar> = written
-        .iter()
-        .map(|&(tag, step, value)| Scalar {
-            tag: tag.to_owned(),
-            step,
-            value,
-            wall_time: 1_700_000_000.5 + step as f64,
-        })
-        .collect();
+    let expected: Vec<Scalar> = written.iter().map(|&(tag, step, value)| Scalar { tag: tag.to_owned(), step, value, wall_time: 1_700_000_000.5 + step as f64 }).collect();
     assert_eq!(scalars, expected);
     // A zero is written explicitly (TensorBoard needs simple_value present to see a scalar).
     let zero = &events[4].summary.as_ref().expect("summary").value[0];
@@ -110,55 +80,30 @@ fn scalars_written_are_read_back_exactly_with_valid_crcs() {
     assert_eq!(records[1][0], 0x09);
     assert_eq!(records[1][9], 0x10);
     assert!(records[1].contains(&0x2a));
-    assert_eq!(
-        Event::decode(records[1].as_slice()).expect("decode"),
-        events[1]
-    );
+    assert_eq!(Event::decode(records[1].as_slice()).expect("decode"), events[1]);
 }
 
 #[test]
 fn explicit_flush_makes_scalars_visible_while_the_writer_lives() {
     let dir = tempfile::tempdir().expect("temp dir");
-    let mut writer = SummaryWriter::create(dir.path())
-        .expect("create")
-        .with_flush_interval(Duration::from_secs(3600));
-    assert_eq!(
-        read_events(writer.path()).expect("header record").len(),
-        1,
-        "the header is written at once"
-    );
+    let mut writer = SummaryWriter::create(dir.path()).expect("create").with_flush_interval(Duration::from_secs(3600));
+    assert_eq!(read_events(writer.path()).expect("header record").len(), 1, "the header is written at once");
     writer.add_scalar("losses/critic", 10, 2.5).expect("add");
     writer.flush().expect("flush");
     let scalars = read_scalars(writer.path()).expect("read");
     assert_eq!(scalars.len(), 1);
-    assert_eq!(
-        (scalars[0].tag.as_str(), scalars[0].step, scalars[0].value),
-        ("losses/critic", 10, 2.5)
-    );
+    assert_eq!((scalars[0].tag.as_str(), scalars[0].step, scalars[0].value), ("losses/critic", 10, 2.5));
 
     // Many scalars trigger writes on their own (size threshold), none lost or reordered.
     for step in 0..5_000 {
-        writer
-            .add_scalar("charts/sps", step, step as f32)
-            .expect("add");
+        writer.add_scalar("charts/sps", step, step as f32).expect("add");
     }
     writer.flush().expect("flush");
     let scalars = read_scalars(writer.path()).expect("read");
     assert_eq!(scalars.len(), 5_001);
-    assert!(
-        scalars[1..]
-            .iter()
-            .enumerate()
-            .all(|(i, s)| s.step == i as i64 && s.value == i as f32)
-    );
+    assert!(scalars[1..].iter().enumerate().all(|(i, s)| s.step == i as i64 && s.value == i as f32));
 
-    assert!(
-        matches!(
-            writer.add_scalar("", 0, 1.0),
-            Err(LearnerError::EventFile { .. })
-        ),
-        "empty tag refused"
-    );
+    assert!(matches!(writer.add_scalar("", 0, 1.0), Err(LearnerError::EventFile { .. })), "empty tag refused");
 }
 
 #[test]

@@ -38,18 +38,13 @@ fn sac_sized_gradient_step_reduces_loss_on_fixed_target() {
     tch::manual_seed(0);
 
     let vs = nn::VarStore::new(tch::Device::Cpu);
-    let critic = Mlp::builder(CRITIC_INPUT, 1)
-        .build(&(vs.root() / "critic"))
-        .unwrap();
+    let critic = Mlp::builder(CRITIC_INPUT, 1).build(&(vs.root() / "critic")).unwrap();
     let xs = Tensor::randn([BATCH, CRITIC_INPUT], (Kind::Float, tch::Device::Cpu));
     let ys = smooth_target(&xs);
     let mut adam = nn::Adam::default().build(&vs, CRITIC_LR).unwrap();
 
     let initial = tch::no_grad(|| value(&mse(&critic, &xs, &ys)));
-    assert!(
-        initial.is_finite() && initial > 0.1,
-        "initial loss {initial} should be sizeable"
-    );
+    assert!(initial.is_finite() && initial > 0.1, "initial loss {initial} should be sizeable");
 
     let mut losses = Vec::with_capacity(STEPS);
     for _ in 0..STEPS {
@@ -59,37 +54,18 @@ fn sac_sized_gradient_step_reduces_loss_on_fixed_target() {
     }
 
     let last = losses[STEPS - 1];
-    eprintln!(
-        "critic MSE: initial {initial:.4}, 1 step {:.4}, {STEPS} steps {last:.4}",
-        losses[0]
-    );
-    assert!(
-        losses[0] < initial,
-        "one Adam step should lower the loss: {initial} -> {}",
-        losses[0]
-    );
-    assert!(
-        last < 0.5 * initial,
-        "after {STEPS} steps the loss should at least halve: {initial} -> {last} ({losses:?})"
-    );
+    eprintln!("critic MSE: initial {initial:.4}, 1 step {:.4}, {STEPS} steps {last:.4}", losses[0]);
+    assert!(losses[0] < initial, "one Adam step should lower the loss: {initial} -> {}", losses[0]);
+    assert!(last < 0.5 * initial, "after {STEPS} steps the loss should at least halve: {initial} -> {last} ({losses:?})");
 }
 
 #[test]
 fn mlp_parameters_have_the_stable_names_and_pytorch_shapes() {
     let vs = nn::VarStore::new(tch::Device::Cpu);
-    let net = Mlp::builder(CRITIC_INPUT, 1)
-        .build(&(vs.root() / "critic"))
-        .unwrap();
-    assert_eq!(
-        (net.input_dim(), net.hidden_width(), net.output_dim()),
-        (19, 256, 1)
-    );
+    let net = Mlp::builder(CRITIC_INPUT, 1).build(&(vs.root() / "critic")).unwrap();
+    assert_eq!((net.input_dim(), net.hidden_width(), net.output_dim()), (19, 256, 1));
 
-    let mut shapes: Vec<(String, Vec<i64>)> = vs
-        .variables()
-        .into_iter()
-        .map(|(name, t)| (name, t.size()))
-        .collect();
+    let mut shapes: Vec<(String, Vec<i64>)> = vs.variables().into_iter().map(|(name, t)| (name, t.size())).collect();
     shapes.sort();
     let expected = [
         ("critic.l0.bias", vec![256]),
@@ -99,26 +75,17 @@ fn mlp_parameters_have_the_stable_names_and_pytorch_shapes() {
         ("critic.out.bias", vec![1]),
         ("critic.out.weight", vec![1, 256]),
     ];
-    let expected: Vec<(String, Vec<i64>)> = expected
-        .into_iter()
-        .map(|(n, s)| (n.to_owned(), s))
-        .collect();
+    let expected: Vec<(String, Vec<i64>)> = expected.into_iter().map(|(n, s)| (n.to_owned(), s)).collect();
     assert_eq!(shapes, expected);
 
-    let out = net.forward(&Tensor::zeros(
-        [BATCH, CRITIC_INPUT],
-        (Kind::Float, tch::Device::Cpu),
-    ));
+    let out = net.forward(&Tensor::zeros([BATCH, CRITIC_INPUT], (Kind::Float, tch::Device::Cpu)));
     assert_eq!(out.size(), [BATCH, 1]);
 }
 
 #[test]
 fn mlp_hidden_width_is_configurable() {
     let vs = nn::VarStore::new(tch::Device::Cpu);
-    Mlp::builder(17, 2)
-        .hidden_width(64)
-        .build(&(vs.root() / "actor"))
-        .unwrap();
+    Mlp::builder(17, 2).hidden_width(64).build(&(vs.root() / "actor")).unwrap();
     let vars = vs.variables();
     assert_eq!(vars["actor.l0.weight"].size(), [64, 17]);
     assert_eq!(vars["actor.l1.weight"].size(), [64, 64]);
@@ -134,20 +101,11 @@ fn cuda_device_is_a_clear_error_when_libtorch_sees_no_gpu() {
         return;
     }
     let err = parsed.unwrap_err();
-    assert!(
-        matches!(err, LearnerError::CudaUnavailable { ref spec } if spec == "cuda"),
-        "{err:?}"
-    );
+    assert!(matches!(err, LearnerError::CudaUnavailable { ref spec } if spec == "cuda"), "{err:?}");
     let message = err.to_string();
-    assert!(
-        message.contains("no CUDA device") && message.contains("use `cpu`"),
-        "{message}"
-    );
+    assert!(message.contains("no CUDA device") && message.contains("use `cpu`"), "{message}");
     // And an explicit ordinal fails the same way, before any tensor is created.
-    assert!(matches!(
-        Device::parse("cuda:1"),
-        Err(LearnerError::CudaUnavailable { .. })
-    ));
+    assert!(matches!(Device::parse("cuda:1"), Err(LearnerError::CudaUnavailable { .. })));
 }
 
 /// build.rs must keep libtorch_cuda.so in the link (see there); without it CUDA is never
@@ -158,15 +116,9 @@ fn cuda_backend_is_loaded_whenever_libtorch_ships_one() {
     let lib_dir = std::path::Path::new(env!("MAPLESS_LIBTORCH_LIB"));
     let maps = std::fs::read_to_string("/proc/self/maps").unwrap();
     let loaded = |name: &str| maps.lines().any(|l| l.ends_with(&format!("/{name}")));
-    assert!(
-        loaded("libtorch_cpu.so"),
-        "libtorch_cpu.so should be mapped"
-    );
+    assert!(loaded("libtorch_cpu.so"), "libtorch_cpu.so should be mapped");
     if lib_dir.join("libtorch_cuda.so").exists() {
-        assert!(
-            loaded("libtorch_cuda.so"),
-            "libtorch_cuda.so is in {lib_dir:?} but not loaded"
-        );
+        assert!(loaded("libtorch_cuda.so"), "libtorch_cuda.so is in {lib_dir:?} but not loaded");
     } else {
         eprintln!("CPU-only libtorch in {lib_dir:?}; nothing to check");
     }

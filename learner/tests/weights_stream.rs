@@ -11,14 +11,11 @@ use std::time::Duration;
 use mapless_learner::LearnerError;
 use mapless_learner::source::GrpcEndpoint;
 use mapless_learner::weights::{
-    self, META_VERSION, ServeOptions, WeightsPublisher, WeightsSubscription, read_safetensors_file,
-    snapshot_from_safetensors, snapshot_from_tensors, snapshot_to_safetensors, subscribe,
+    self, META_VERSION, ServeOptions, WeightsPublisher, WeightsSubscription, read_safetensors_file, snapshot_from_safetensors, snapshot_from_tensors, snapshot_to_safetensors, subscribe,
     tensors_from_snapshot, write_safetensors_file,
 };
 use mapless_proto::v1::weights_service_client::WeightsServiceClient;
-use mapless_proto::v1::{
-    Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot,
-};
+use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot};
 use mapless_replay::server::Security;
 use tch::{Device, Kind, Tensor};
 use tokio::net::TcpListener;
@@ -30,9 +27,7 @@ use tonic::Code;
 const PATIENCE: Duration = Duration::from_secs(10);
 
 async fn within<T>(what: &str, f: impl Future<Output = T>) -> T {
-    tokio::time::timeout(PATIENCE, f)
-        .await
-        .unwrap_or_else(|_| panic!("{what}: nothing within {PATIENCE:?}"))
+    tokio::time::timeout(PATIENCE, f).await.unwrap_or_else(|_| panic!("{what}: nothing within {PATIENCE:?}"))
 }
 
 /// A snapshot of `version` with one small tensor whose values encode the version.
@@ -41,11 +36,8 @@ fn snapshot(version: u64) -> WeightsSnapshot {
 }
 
 fn snapshot_with(version: u64, values: usize) -> WeightsSnapshot {
-    let data: Vec<f32> = (0..values)
-        .map(|i| version as f32 + i as f32 / 8.0)
-        .collect();
-    let tensor =
-        NamedTensor::from_f32("actor.out.bias", vec![values as u64], &data).expect("shape matches");
+    let data: Vec<f32> = (0..values).map(|i| version as f32 + i as f32 / 8.0).collect();
+    let tensor = NamedTensor::from_f32("actor.out.bias", vec![values as u64], &data).expect("shape matches");
     WeightsSnapshot {
         protocol_version: ProtocolVersion::V1 as i32,
         version,
@@ -66,24 +58,13 @@ struct Harness {
 
 impl Harness {
     async fn start(publisher: &WeightsPublisher, options: ServeOptions) -> Harness {
-        let listener = TcpListener::bind("127.0.0.1:0")
-            .await
-            .expect("bind loopback");
+        let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
         let addr = listener.local_addr().expect("bound address");
         let (stop, stopped) = oneshot::channel::<()>();
-        let server = tokio::spawn(weights::serve(
-            listener,
-            publisher.clone(),
-            options,
-            async {
-                let _ = stopped.await;
-            },
-        ));
-        Harness {
-            addr,
-            stop: Some(stop),
-            server: Some(server),
-        }
+        let server = tokio::spawn(weights::serve(listener, publisher.clone(), options, async {
+            let _ = stopped.await;
+        }));
+        Harness { addr, stop: Some(stop), server: Some(server) }
     }
 
     fn endpoint(&self) -> GrpcEndpoint {
@@ -91,33 +72,18 @@ impl Harness {
     }
 
     async fn subscribe(&self, min_version: u64) -> WeightsSubscription {
-        within(
-            "subscribe",
-            subscribe(&self.endpoint(), min_version, "actor-test"),
-        )
-        .await
-        .expect("subscribe")
+        within("subscribe", subscribe(&self.endpoint(), min_version, "actor-test")).await.expect("subscribe")
     }
 
     /// Stops the server and checks that it returns cleanly.
     async fn shutdown(mut self) {
-        self.stop
-            .take()
-            .expect("running")
-            .send(())
-            .expect("server still running");
-        within("server stop", self.server.take().expect("running"))
-            .await
-            .expect("no panic")
-            .expect("clean exit");
+        self.stop.take().expect("running").send(()).expect("server still running");
+        within("server stop", self.server.take().expect("running")).await.expect("no panic").expect("clean exit");
     }
 }
 
 async fn next(subscription: &mut WeightsSubscription) -> WeightsSnapshot {
-    within("next snapshot", subscription.next())
-        .await
-        .expect("healthy stream")
-        .expect("stream open")
+    within("next snapshot", subscription.next()).await.expect("healthy stream").expect("stream open")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -129,25 +95,15 @@ async fn late_subscriber_gets_the_newest_version_at_once_then_each_newer_one() {
 
     let mut stream = h.subscribe(0).await;
     let first = next(&mut stream).await;
-    assert_eq!(
-        first.version, 2,
-        "a late subscriber starts at the newest version, no history"
-    );
+    assert_eq!(first.version, 2, "a late subscriber starts at the newest version, no history");
     assert_eq!(first, snapshot(2), "every field survives the wire");
 
     let mut last = first.version;
     for version in 3..=6 {
         publisher.publish(snapshot(version)).expect("publish");
         let got = next(&mut stream).await;
-        assert!(
-            got.version > last,
-            "versions strictly increase: {} after {last}",
-            got.version
-        );
-        assert_eq!(
-            got.version, version,
-            "a subscriber that keeps up sees every version"
-        );
+        assert!(got.version > last, "versions strictly increase: {} after {last}", got.version);
+        assert_eq!(got.version, version, "a subscriber that keeps up sees every version");
         last = got.version;
     }
     assert_eq!(stream.last_version(), 6);
@@ -180,13 +136,8 @@ async fn min_version_is_respected() {
     let mut caught_up = h.subscribe(6).await;
     let waiting = tokio::spawn(async move { next(&mut caught_up).await });
     publisher.publish(snapshot(6)).expect("v6");
-    let first = within("first after reconnect", waiting)
-        .await
-        .expect("no panic");
-    assert_eq!(
-        first.version, 6,
-        "min_version 6 skips the already-received version 5"
-    );
+    let first = within("first after reconnect", waiting).await.expect("no panic");
+    assert_eq!(first.version, 6, "min_version 6 skips the already-received version 5");
     assert_eq!(next(&mut behind).await.version, 6);
     h.shutdown().await;
 }
@@ -204,33 +155,17 @@ async fn slow_subscriber_skips_versions_but_ends_at_the_newest() {
 
     // The learner races ahead while the subscriber reads nothing; publish never blocks.
     for version in 2..=LAST {
-        publisher
-            .publish(snapshot_with(version, VALUES))
-            .expect("publish");
+        publisher.publish(snapshot_with(version, VALUES)).expect("publish");
     }
     let mut received = vec![1];
     while *received.last().expect("non-empty") < LAST {
         let got = next(&mut stream).await;
-        assert!(
-            got.version > *received.last().expect("non-empty"),
-            "strictly increasing"
-        );
-        assert_eq!(
-            got,
-            snapshot_with(got.version, VALUES),
-            "a skipped-to snapshot is intact"
-        );
+        assert!(got.version > *received.last().expect("non-empty"), "strictly increasing");
+        assert_eq!(got, snapshot_with(got.version, VALUES), "a skipped-to snapshot is intact");
         received.push(got.version);
     }
-    assert_eq!(
-        *received.last().expect("non-empty"),
-        LAST,
-        "ends at the newest version"
-    );
-    assert!(
-        (received.len() as u64) < LAST,
-        "a slow subscriber skips intermediate versions instead of queueing them all: got {received:?}"
-    );
+    assert_eq!(*received.last().expect("non-empty"), LAST, "ends at the newest version");
+    assert!((received.len() as u64) < LAST, "a slow subscriber skips intermediate versions instead of queueing them all: got {received:?}");
     h.shutdown().await;
 }
 
@@ -239,22 +174,10 @@ async fn unknown_protocol_version_is_refused_with_failed_precondition() {
     let publisher = WeightsPublisher::new();
     publisher.publish(snapshot(1)).expect("v1");
     let h = Harness::start(&publisher, ServeOptions::default()).await;
-    let mut client = WeightsServiceClient::connect(format!("http://{}", h.addr))
-        .await
-        .expect("connect");
-    let refused = client
-        .subscribe(SubscribeRequest {
-            protocol_version: 7,
-            ..SubscribeRequest::default()
-        })
-        .await
-        .expect_err("unknown protocol version");
+    let mut client = WeightsServiceClient::connect(format!("http://{}", h.addr)).await.expect("connect");
+    let refused = client.subscribe(SubscribeRequest { protocol_version: 7, ..SubscribeRequest::default() }).await.expect_err("unknown protocol version");
     assert_eq!(refused.code(), Code::FailedPrecondition);
-    assert!(
-        refused.message().contains("protocol_version"),
-        "{}",
-        refused.message()
-    );
+    assert!(refused.message().contains("protocol_version"), "{}", refused.message());
     h.shutdown().await;
 }
 
@@ -266,11 +189,7 @@ async fn shutdown_ends_open_streams_with_unavailable() {
     let mut stream = h.subscribe(0).await;
     assert_eq!(next(&mut stream).await.version, 1);
 
-    h.stop
-        .take()
-        .expect("running")
-        .send(())
-        .expect("server running");
+    h.stop.take().expect("running").send(()).expect("server running");
     match within("end of stream", stream.next()).await {
         Err(LearnerError::Grpc { code, message, .. }) => {
             assert_eq!(code, Code::Unavailable, "{message}");
@@ -278,32 +197,21 @@ async fn shutdown_ends_open_streams_with_unavailable() {
         }
         other => panic!("expected UNAVAILABLE, got {other:?}"),
     }
-    within("server stop", h.server.take().expect("running"))
-        .await
-        .expect("no panic")
-        .expect("clean exit");
+    within("server stop", h.server.take().expect("running")).await.expect("no panic").expect("clean exit");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bearer_token_is_required_when_configured() {
     let publisher = WeightsPublisher::new();
     publisher.publish(snapshot(1)).expect("v1");
-    let options = ServeOptions {
-        security: Security {
-            tls: None,
-            token: Some("open-sesame".into()),
-        },
-        ..ServeOptions::default()
-    };
+    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()) }, ..ServeOptions::default() };
     let h = Harness::start(&publisher, options).await;
     match within("subscribe without token", subscribe(&h.endpoint(), 0, "")).await {
         Err(LearnerError::Grpc { code, .. }) => assert_eq!(code, Code::Unauthenticated),
         other => panic!("expected UNAUTHENTICATED, got {other:?}"),
     }
     let endpoint = h.endpoint().with_token("open-sesame");
-    let mut stream = within("subscribe", subscribe(&endpoint, 0, ""))
-        .await
-        .expect("right token");
+    let mut stream = within("subscribe", subscribe(&endpoint, 0, "")).await.expect("right token");
     assert_eq!(next(&mut stream).await.version, 1);
     h.shutdown().await;
 }
@@ -313,10 +221,7 @@ async fn non_loopback_listener_without_tls_and_token_is_refused() {
     let listener = TcpListener::bind("0.0.0.0:0").await.expect("bind");
     let refused = weights::run(listener, WeightsPublisher::new(), std::future::pending()).await;
     let err = refused.expect_err("insecure non-loopback listener");
-    assert!(
-        err.to_string().contains("TLS") && err.to_string().contains("token"),
-        "{err}"
-    );
+    assert!(err.to_string().contains("TLS") && err.to_string().contains("token"), "{err}");
 }
 
 #[test]
@@ -331,42 +236,17 @@ fn publish_refuses_stale_invalid_and_oversized_snapshots_and_keeps_the_newest() 
     }
     let mut unversioned = snapshot(4);
     unversioned.version = 0;
-    assert!(
-        publisher.publish(unversioned).is_err(),
-        "version 0 is never published"
-    );
+    assert!(publisher.publish(unversioned).is_err(), "version 0 is never published");
     let mut no_algorithm = snapshot(4);
     no_algorithm.algorithm = Algorithm::Unspecified as i32;
-    assert!(
-        publisher
-            .publish(no_algorithm)
-            .expect_err("algorithm")
-            .to_string()
-            .contains("algorithm")
-    );
+    assert!(publisher.publish(no_algorithm).expect_err("algorithm").to_string().contains("algorithm"));
     let mut torn = snapshot(4);
     torn.tensors[0].data.pop();
-    assert!(
-        publisher
-            .publish(torn)
-            .expect_err("torn tensor")
-            .to_string()
-            .contains("actor.out.bias")
-    );
+    assert!(publisher.publish(torn).expect_err("torn tensor").to_string().contains("actor.out.bias"));
     let huge = snapshot_with(4, mapless_proto::MAX_MESSAGE_BYTES / 4 + 1);
-    assert!(
-        publisher
-            .publish(huge)
-            .expect_err("too big")
-            .to_string()
-            .contains("message limit")
-    );
+    assert!(publisher.publish(huge).expect_err("too big").to_string().contains("message limit"));
 
-    assert_eq!(
-        publisher.latest_version(),
-        3,
-        "refused snapshots leave the newest in place"
-    );
+    assert_eq!(publisher.latest_version(), 3, "refused snapshots leave the newest in place");
     assert_eq!(*publisher.latest().expect("published"), snapshot(3));
     // Clones share the one slot.
     let clone = publisher.clone();
@@ -376,16 +256,7 @@ fn publish_refuses_stale_invalid_and_oversized_snapshots_and_keeps_the_newest() 
 
 /// A snapshot with awkward values and names given out of alphabetical order.
 fn awkward_snapshot() -> WeightsSnapshot {
-    let special = [
-        0.0,
-        -0.0,
-        f32::MIN_POSITIVE / 2.0,
-        f32::MAX,
-        f32::MIN,
-        1.0e-38,
-        std::f32::consts::PI,
-        -1.5,
-    ];
+    let special = [0.0, -0.0, f32::MIN_POSITIVE / 2.0, f32::MAX, f32::MIN, 1.0e-38, std::f32::consts::PI, -1.5];
     let tensors = vec![
         NamedTensor::from_f32("policy.z_last.weight", vec![2, 4], &special).expect("2x4"),
         NamedTensor::from_f32("policy.a_first.bias", vec![3], &[1.0, 2.0, 3.0]).expect("3"),
@@ -400,11 +271,7 @@ fn awkward_snapshot() -> WeightsSnapshot {
         obs_dim: 17,
         act_dim: 2,
         tensors,
-        metadata: [
-            ("learner_step".to_owned(), "4200".to_owned()),
-            ("config_hash".to_owned(), "abc123".to_owned()),
-        ]
-        .into(),
+        metadata: [("learner_step".to_owned(), "4200".to_owned()), ("config_hash".to_owned(), "abc123".to_owned())].into(),
     }
 }
 
@@ -424,14 +291,8 @@ fn snapshot_round_trips_through_a_safetensors_file_bit_exactly() {
     newer.version = 43;
     write_safetensors_file(&path, &newer).expect("overwrite");
     assert_eq!(read_safetensors_file(&path).expect("read").version, 43);
-    let names: Vec<_> = std::fs::read_dir(dir.path())
-        .expect("list")
-        .map(|e| e.expect("entry").file_name())
-        .collect();
-    assert_eq!(
-        names,
-        vec![std::ffi::OsString::from("policy-42.safetensors")]
-    );
+    let names: Vec<_> = std::fs::read_dir(dir.path()).expect("list").map(|e| e.expect("entry").file_name()).collect();
+    assert_eq!(names, vec![std::ffi::OsString::from("policy-42.safetensors")]);
 
     // A plain safetensors reader sees the tensors and the metadata.
     let bytes = std::fs::read(&path).expect("read bytes");
@@ -448,10 +309,7 @@ fn snapshot_round_trips_through_a_safetensors_file_bit_exactly() {
 fn expect_invalid(result: Result<WeightsSnapshot, LearnerError>, needle: &str) {
     match result {
         Err(e @ LearnerError::InvalidWeights { .. }) => {
-            assert!(
-                e.to_string().contains(needle),
-                "error should mention `{needle}`: {e}"
-            );
+            assert!(e.to_string().contains(needle), "error should mention `{needle}`: {e}");
         }
         other => panic!("expected InvalidWeights mentioning `{needle}`, got {other:?}"),
     }
@@ -465,10 +323,7 @@ fn corrupt_safetensors_files_are_clear_errors() {
     // Truncated: the header's offsets run past the end.
     let path = dir.path().join("truncated.safetensors");
     std::fs::write(&path, &good[..good.len() - 3]).expect("write");
-    expect_invalid(
-        read_safetensors_file(&path),
-        "not a valid .safetensors file",
-    );
+    expect_invalid(read_safetensors_file(&path), "not a valid .safetensors file");
 
     // A flipped bit in the tensor data: only the checksum can tell.
     let mut flipped = good.clone();
@@ -477,52 +332,28 @@ fn corrupt_safetensors_files_are_clear_errors() {
     expect_invalid(snapshot_from_safetensors(&flipped, "flipped"), "corrupt");
 
     // Garbage, empty, and a header length pointing nowhere.
-    expect_invalid(
-        snapshot_from_safetensors(b"definitely not safetensors", "garbage"),
-        "not a valid",
-    );
+    expect_invalid(snapshot_from_safetensors(b"definitely not safetensors", "garbage"), "not a valid");
     expect_invalid(snapshot_from_safetensors(&[], "empty"), "not a valid");
-    expect_invalid(
-        snapshot_from_safetensors(&u64::MAX.to_le_bytes(), "huge header"),
-        "not a valid",
-    );
+    expect_invalid(snapshot_from_safetensors(&u64::MAX.to_le_bytes(), "huge header"), "not a valid");
 
     // A valid safetensors file that is not a mapless snapshot.
     let plain_data = [0u8; 8];
-    let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![2], &plain_data)
-        .expect("view");
+    let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![2], &plain_data).expect("view");
     let plain = safetensors::serialize([("w", view)], None).expect("serialize");
-    expect_invalid(
-        snapshot_from_safetensors(&plain, "plain"),
-        "mapless.version",
-    );
+    expect_invalid(snapshot_from_safetensors(&plain, "plain"), "mapless.version");
 
     // A missing file names the path.
     let missing = dir.path().join("missing.safetensors");
     let err = read_safetensors_file(&missing).expect_err("missing file");
-    assert!(
-        matches!(err, LearnerError::FileIo { .. })
-            && err.to_string().contains("missing.safetensors"),
-        "{err}"
-    );
+    assert!(matches!(err, LearnerError::FileIo { .. }) && err.to_string().contains("missing.safetensors"), "{err}");
 
     // Writing refuses invalid snapshots and reserved metadata keys.
     let mut reserved = awkward_snapshot();
-    reserved
-        .metadata
-        .insert("mapless.version".into(), "7".into());
-    assert!(
-        snapshot_to_safetensors(&reserved)
-            .expect_err("reserved")
-            .to_string()
-            .contains("reserved")
-    );
+    reserved.metadata.insert("mapless.version".into(), "7".into());
+    assert!(snapshot_to_safetensors(&reserved).expect_err("reserved").to_string().contains("reserved"));
     let mut duplicate = awkward_snapshot();
     duplicate.tensors.push(duplicate.tensors[0].clone());
-    assert!(
-        snapshot_to_safetensors(&duplicate).is_err(),
-        "duplicate names refused"
-    );
+    assert!(snapshot_to_safetensors(&duplicate).is_err(), "duplicate names refused");
 }
 
 #[test]
@@ -543,57 +374,34 @@ fn tensor_values_from_tch_survive_exactly() {
         ("actor.s".to_owned(), scalar.shallow_clone()),
     ];
     let metadata = HashMap::from([("learner_step".to_owned(), "17".to_owned())]);
-    let snap =
-        snapshot_from_tensors(9, Algorithm::Sac, 17, 2, &tensors, metadata).expect("snapshot");
+    let snap = snapshot_from_tensors(9, Algorithm::Sac, 17, 2, &tensors, metadata).expect("snapshot");
     assert_eq!(snap.validate(), Ok(()));
     let names: Vec<_> = snap.tensors.iter().map(|t| t.name.as_str()).collect();
-    assert_eq!(
-        names,
-        [
-            "actor.fc2.weight",
-            "actor.fc1.bias",
-            "actor.t",
-            "actor.p",
-            "actor.s"
-        ],
-        "names and order as given"
-    );
+    assert_eq!(names, ["actor.fc2.weight", "actor.fc1.bias", "actor.t", "actor.p", "actor.s"], "names and order as given");
     assert_eq!(snap.tensor("actor.t").expect("t").shape, vec![5, 3]);
     assert_eq!(snap.tensor("actor.s").expect("s").shape, Vec::<u64>::new());
 
-    let back =
-        snapshot_from_safetensors(&snapshot_to_safetensors(&snap).expect("encode"), "memory")
-            .expect("decode");
+    let back = snapshot_from_safetensors(&snapshot_to_safetensors(&snap).expect("encode"), "memory").expect("decode");
     assert_eq!(back, snap);
     let restored = tensors_from_snapshot(&back).expect("tensors");
     for ((name, original), (restored_name, restored)) in tensors.iter().zip(&restored) {
         assert_eq!(name, restored_name);
         assert_eq!(original.size(), restored.size(), "{name} shape");
-        let a = Vec::<f32>::try_from(original.detach().contiguous().flatten(0, -1))
-            .expect("f32 values");
+        let a = Vec::<f32>::try_from(original.detach().contiguous().flatten(0, -1)).expect("f32 values");
         let b = Vec::<f32>::try_from(restored.flatten(0, -1)).expect("f32 values");
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&a), bits(&b), "{name}: every bit survives");
     }
 
     // Values the learner must never publish, and kinds that are not weights.
-    let nan = vec![(
-        "actor.nan".to_owned(),
-        Tensor::from_slice(&[1.0f32, f32::NAN]),
-    )];
-    let err =
-        snapshot_from_tensors(10, Algorithm::Sac, 17, 2, &nan, HashMap::new()).expect_err("NaN");
-    assert!(
-        err.to_string().contains("actor.nan") && err.to_string().contains("element 1"),
-        "{err}"
-    );
+    let nan = vec![("actor.nan".to_owned(), Tensor::from_slice(&[1.0f32, f32::NAN]))];
+    let err = snapshot_from_tensors(10, Algorithm::Sac, 17, 2, &nan, HashMap::new()).expect_err("NaN");
+    assert!(err.to_string().contains("actor.nan") && err.to_string().contains("element 1"), "{err}");
     let ints = vec![("actor.steps".to_owned(), Tensor::from_slice(&[1i64, 2]))];
-    let err =
-        snapshot_from_tensors(10, Algorithm::Sac, 17, 2, &ints, HashMap::new()).expect_err("int64");
+    let err = snapshot_from_tensors(10, Algorithm::Sac, 17, 2, &ints, HashMap::new()).expect_err("int64");
     assert!(err.to_string().contains("actor.steps"), "{err}");
     // f64 parameters are converted to f32.
     let doubles = vec![("actor.d".to_owned(), Tensor::from_slice(&[0.5f64, -2.0]))];
-    let snap = snapshot_from_tensors(10, Algorithm::Ddpg, 3, 1, &doubles, HashMap::new())
-        .expect("f64 converted");
+    let snap = snapshot_from_tensors(10, Algorithm::Ddpg, 3, 1, &doubles, HashMap::new()).expect("f64 converted");
     assert_eq!(snap.tensors[0].to_f32_vec(), Ok(vec![0.5, -2.0]));
 }

@@ -17,9 +17,7 @@ use crate::PROTOCOL_VERSION;
 #[non_exhaustive]
 pub enum ProtoError {
     /// `protocol_version` is not one this crate speaks (0 means the field was never set).
-    #[error(
-        "unsupported protocol_version {got}: this peer speaks only {PROTOCOL_VERSION} (mapless.v1)"
-    )]
+    #[error("unsupported protocol_version {got}: this peer speaks only {PROTOCOL_VERSION} (mapless.v1)")]
     UnsupportedProtocolVersion {
         /// The raw value received.
         got: i32,

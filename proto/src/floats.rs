@@ -128,12 +128,10 @@ impl<'a> FloatColumn<'a> {
     pub fn to_cow(&self) -> Cow<'a, [f32]> {
         match *self {
             FloatColumn::Packed(v) => Cow::Borrowed(v),
-            FloatColumn::F32Le(b) if cfg!(target_endian = "little") && b.len() % F32_BYTES == 0 => {
-                match bytemuck::try_cast_slice::<u8, f32>(b) {
-                    Ok(v) => Cow::Borrowed(v),
-                    Err(_) => Cow::Owned(self.to_vec()),
-                }
-            }
+            FloatColumn::F32Le(b) if cfg!(target_endian = "little") && b.len() % F32_BYTES == 0 => match bytemuck::try_cast_slice::<u8, f32>(b) {
+                Ok(v) => Cow::Borrowed(v),
+                Err(_) => Cow::Owned(self.to_vec()),
+            },
             FloatColumn::F32Le(_) => Cow::Owned(self.to_vec()),
         }
     }
@@ -222,7 +220,7 @@ fn put_varint(out: &mut Vec<u8>, mut v: u64) {
 
 fn varint_len(v: u64) -> usize {
     // 1 byte per 7 significant bits, at least 1.
-    ((64 - (v | 1).leading_zeros() as usize) + 6) / 7
+    (64 - (v | 1).leading_zeros() as usize).div_ceil(7)
 }
 
 #[cfg(test)]

@@ -44,13 +44,7 @@ pub use transition::{Transition, TransitionBatchBuilder};
 /// [`v1::weights_service_client::WeightsServiceClient`]. Configure both with
 /// [`MAX_MESSAGE_BYTES`] (`max_decoding_message_size` / `max_encoding_message_size`), because
 /// tonic's default decoding limit is 4 MiB.
-#[allow(
-    missing_docs,
-    clippy::all,
-    clippy::pedantic,
-    rustdoc::broken_intra_doc_links,
-    rustdoc::invalid_html_tags
-)]
+#[allow(missing_docs, clippy::all, clippy::pedantic, rustdoc::broken_intra_doc_links, rustdoc::invalid_html_tags)]
 pub mod v1 {
     include!("gen/mapless.v1.rs");
 }
@@ -82,11 +76,5 @@ pub const MAX_ACTOR_ID_BYTES: usize = 128;
 /// Servers call this first on every request, e.g.
 /// `check_protocol_version(request.protocol_version)?`.
 pub fn check_protocol_version(protocol_version: i32) -> Result<(), ProtoError> {
-    if protocol_version == v1::ProtocolVersion::V1 as i32 {
-        Ok(())
-    } else {
-        Err(ProtoError::UnsupportedProtocolVersion {
-            got: protocol_version,
-        })
-    }
+    if protocol_version == v1::ProtocolVersion::V1 as i32 { Ok(()) } else { Err(ProtoError::UnsupportedProtocolVersion { got: protocol_version }) }
 }

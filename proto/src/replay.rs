@@ -13,23 +13,14 @@ impl SampleRequest {
     pub fn validate(&self, max_rows: usize) -> Result<usize, ProtoError> {
         check_protocol_version(self.protocol_version)?;
         if self.batch_size == 0 {
-            return Err(ProtoError::InvalidField {
-                field: "batch_size",
-                reason: "is 0".to_owned(),
-            });
+            return Err(ProtoError::InvalidField { field: "batch_size", reason: "is 0".to_owned() });
         }
         if u64::from(self.batch_size) > max_rows as u64 {
-            return Err(ProtoError::InvalidField {
-                field: "batch_size",
-                reason: format!("is {}, the limit is {max_rows}", self.batch_size),
-            });
+            return Err(ProtoError::InvalidField { field: "batch_size", reason: format!("is {}, the limit is {max_rows}", self.batch_size) });
         }
         // NaN fails the range test too.
         if !(0.0..=1.0).contains(&self.importance_beta) {
-            return Err(ProtoError::InvalidField {
-                field: "importance_beta",
-                reason: format!("is {}, must be in [0, 1]", self.importance_beta),
-            });
+            return Err(ProtoError::InvalidField { field: "importance_beta", reason: format!("is {}, must be in [0, 1]", self.importance_beta) });
         }
         Ok(self.batch_size as usize)
     }
@@ -43,28 +34,15 @@ impl PriorityUpdate {
         check_protocol_version(self.protocol_version)?;
         let keys = self.keys.len();
         if keys > max_keys {
-            return Err(ProtoError::TooManyRows {
-                rows: keys as u64,
-                max: max_keys as u64,
-            });
+            return Err(ProtoError::TooManyRows { rows: keys as u64, max: max_keys as u64 });
         }
         check_len("priorities", self.priorities.len(), keys as u64)?;
         for (row, &p) in self.priorities.iter().enumerate() {
             if !p.is_finite() {
-                return Err(ProtoError::NonFinite {
-                    column: "priorities",
-                    row,
-                    element: 0,
-                    value: p,
-                });
+                return Err(ProtoError::NonFinite { column: "priorities", row, element: 0, value: p });
             }
             if p < 0.0 {
-                return Err(ProtoError::OutOfRange {
-                    column: "priorities",
-                    row,
-                    value: p,
-                    expected: ">= 0",
-                });
+                return Err(ProtoError::OutOfRange { column: "priorities", row, value: p, expected: ">= 0" });
             }
         }
         Ok(keys)

@@ -44,29 +44,14 @@ impl Dtype {
 impl NamedTensor {
     /// An F32 tensor from row-major values. Fails when `values.len()` is not the product of
     /// `shape` (an empty shape is a scalar: one value).
-    pub fn from_f32(
-        name: impl Into<String>,
-        shape: Vec<u64>,
-        values: &[f32],
-    ) -> Result<Self, ProtoError> {
+    pub fn from_f32(name: impl Into<String>, shape: Vec<u64>, values: &[f32]) -> Result<Self, ProtoError> {
         let name = name.into();
         let elements = element_count(&name, &shape)?;
         if elements != values.len() as u64 {
-            return Err(ProtoError::InvalidTensor {
-                name,
-                reason: format!(
-                    "shape {shape:?} holds {elements} values, got {}",
-                    values.len()
-                ),
-            });
+            return Err(ProtoError::InvalidTensor { name, reason: format!("shape {shape:?} holds {elements} values, got {}", values.len()) });
         }
         let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-        Ok(Self {
-            name,
-            shape,
-            dtype: Dtype::F32 as i32,
-            data,
-        })
+        Ok(Self { name, shape, dtype: Dtype::F32 as i32, data })
     }
 
     /// Number of elements, product(shape); an error if that overflows `u64`.
@@ -78,26 +63,15 @@ impl NamedTensor {
     /// `product(shape) * size_of(dtype)` bytes of data.
     pub fn validate(&self) -> Result<(), ProtoError> {
         if self.name.is_empty() {
-            return Err(ProtoError::InvalidTensor {
-                name: String::new(),
-                reason: "name is empty".to_owned(),
-            });
+            return Err(ProtoError::InvalidTensor { name: String::new(), reason: "name is empty".to_owned() });
         }
         let dtype = Dtype::try_from(self.dtype).ok();
         let Some(size) = dtype.and_then(Dtype::size_bytes) else {
             return Err(self.invalid(format!("unknown or unset dtype {}", self.dtype)));
         };
-        let expected = self
-            .element_count()?
-            .checked_mul(size as u64)
-            .ok_or_else(|| self.invalid(format!("shape {:?} overflows u64 bytes", self.shape)))?;
+        let expected = self.element_count()?.checked_mul(size as u64).ok_or_else(|| self.invalid(format!("shape {:?} overflows u64 bytes", self.shape)))?;
         if expected != self.data.len() as u64 {
-            return Err(self.invalid(format!(
-                "shape {:?} of {} needs {expected} bytes, data has {}",
-                self.shape,
-                dtype.and_then(Dtype::safetensors_name).unwrap_or("?"),
-                self.data.len()
-            )));
+            return Err(self.invalid(format!("shape {:?} of {} needs {expected} bytes, data has {}", self.shape, dtype.and_then(Dtype::safetensors_name).unwrap_or("?"), self.data.len())));
         }
         Ok(())
     }
@@ -107,35 +81,19 @@ impl NamedTensor {
     pub fn to_f32_vec(&self) -> Result<Vec<f32>, ProtoError> {
         self.validate()?;
         if self.dtype != Dtype::F32 as i32 {
-            let got = Dtype::try_from(self.dtype)
-                .ok()
-                .and_then(Dtype::safetensors_name)
-                .unwrap_or("?");
+            let got = Dtype::try_from(self.dtype).ok().and_then(Dtype::safetensors_name).unwrap_or("?");
             return Err(self.invalid(format!("dtype is {got}, only F32 can be read as f32")));
         }
-        Ok(self
-            .data
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect())
+        Ok(self.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
     }
 
     fn invalid(&self, reason: String) -> ProtoError {
-        ProtoError::InvalidTensor {
-            name: self.name.clone(),
-            reason,
-        }
+        ProtoError::InvalidTensor { name: self.name.clone(), reason }
     }
 }
 
 fn element_count(name: &str, shape: &[u64]) -> Result<u64, ProtoError> {
-    shape
-        .iter()
-        .try_fold(1u64, |acc, &d| acc.checked_mul(d))
-        .ok_or_else(|| ProtoError::InvalidTensor {
-            name: name.to_owned(),
-            reason: format!("shape {shape:?} has more than u64::MAX elements"),
-        })
+    shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(d)).ok_or_else(|| ProtoError::InvalidTensor { name: name.to_owned(), reason: format!("shape {shape:?} has more than u64::MAX elements") })
 }
 
 impl WeightsSnapshot {
@@ -144,26 +102,17 @@ impl WeightsSnapshot {
     pub fn validate(&self) -> Result<(), ProtoError> {
         check_protocol_version(self.protocol_version)?;
         if self.version == 0 {
-            return Err(ProtoError::InvalidField {
-                field: "version",
-                reason: "is 0; published versions start at 1".to_owned(),
-            });
+            return Err(ProtoError::InvalidField { field: "version", reason: "is 0; published versions start at 1".to_owned() });
         }
         match Algorithm::try_from(self.algorithm) {
             Ok(Algorithm::Ddpg | Algorithm::Td3 | Algorithm::Sac) => {}
             Ok(Algorithm::Unspecified) | Err(_) => {
-                return Err(ProtoError::InvalidField {
-                    field: "algorithm",
-                    reason: format!("is {}, not a known algorithm", self.algorithm),
-                });
+                return Err(ProtoError::InvalidField { field: "algorithm", reason: format!("is {}, not a known algorithm", self.algorithm) });
             }
         }
         for (field, dim) in [("obs_dim", self.obs_dim), ("act_dim", self.act_dim)] {
             if dim == 0 {
-                return Err(ProtoError::InvalidField {
-                    field,
-                    reason: "is 0".to_owned(),
-                });
+                return Err(ProtoError::InvalidField { field, reason: "is 0".to_owned() });
             }
         }
         let mut names = HashSet::with_capacity(self.tensors.len());

@@ -78,16 +78,10 @@ impl<'a> FloatField<'a> {
     fn check_len(&self, expected: u64) -> Result<(), ProtoError> {
         if !self.le.is_empty() {
             if !self.packed.is_empty() {
-                return Err(ProtoError::InvalidField {
-                    field: self.le_name,
-                    reason: format!("is set together with `{}`; send exactly one encoding of a column", self.name),
-                });
+                return Err(ProtoError::InvalidField { field: self.le_name, reason: format!("is set together with `{}`; send exactly one encoding of a column", self.name) });
             }
-            if self.le.len() % 4 != 0 {
-                return Err(ProtoError::InvalidField {
-                    field: self.le_name,
-                    reason: format!("is {} bytes long, not a whole number of 4-byte floats", self.le.len()),
-                });
+            if !self.le.len().is_multiple_of(4) {
+                return Err(ProtoError::InvalidField { field: self.le_name, reason: format!("is {} bytes long, not a whole number of 4-byte floats", self.le.len()) });
             }
         }
         check_len(self.carrier(), self.column().len(), expected)
@@ -97,12 +91,7 @@ impl<'a> FloatField<'a> {
     fn check_finite(&self, width: usize) -> Result<(), ProtoError> {
         match self.column().first_non_finite() {
             None => Ok(()),
-            Some((index, value)) => Err(ProtoError::NonFinite {
-                column: self.carrier(),
-                row: index / width,
-                element: index % width,
-                value: f64::from(value),
-            }),
+            Some((index, value)) => Err(ProtoError::NonFinite { column: self.carrier(), row: index / width, element: index % width, value: f64::from(value) }),
         }
     }
 }
@@ -132,13 +121,7 @@ impl<'a> Columns<'a> {
     /// Checks dims, row count, column encodings and lengths, finiteness and flags, in that
     /// order, so that the first error reported is the most fundamental one.
     /// O(num_rows * (obs_dim + act_dim)).
-    fn check(
-        &self,
-        message: &'static str,
-        expected_obs_dim: usize,
-        expected_act_dim: usize,
-        max_rows: usize,
-    ) -> Result<usize, ProtoError> {
+    fn check(&self, message: &'static str, expected_obs_dim: usize, expected_act_dim: usize, max_rows: usize) -> Result<usize, ProtoError> {
         check_dim("obs_dim", self.obs_dim, expected_obs_dim)?;
         check_dim("act_dim", self.act_dim, expected_act_dim)?;
         if self.num_rows == 0 {
@@ -146,10 +129,7 @@ impl<'a> Columns<'a> {
         }
         let rows = u64::from(self.num_rows);
         if rows > max_rows as u64 {
-            return Err(ProtoError::TooManyRows {
-                rows,
-                max: max_rows as u64,
-            });
+            return Err(ProtoError::TooManyRows { rows, max: max_rows as u64 });
         }
         // u32 * u32 always fits in u64, so these products cannot overflow.
         let obs_len = rows * u64::from(self.obs_dim);
@@ -171,12 +151,7 @@ impl<'a> Columns<'a> {
         self.action.check_finite(act_dim)?;
         self.reward.check_finite(1)?;
         self.next_obs.check_finite(obs_dim)?;
-        if let Some(row) = self
-            .terminal
-            .iter()
-            .zip(self.truncated)
-            .position(|(&terminal, &truncated)| terminal && truncated)
-        {
+        if let Some(row) = self.terminal.iter().zip(self.truncated).position(|(&terminal, &truncated)| terminal && truncated) {
             return Err(ProtoError::TerminalAndTruncated { row });
         }
         Ok(self.num_rows as usize)
@@ -208,31 +183,16 @@ impl<'a> Columns<'a> {
 fn check_dim(field: &'static str, got: u32, expected: usize) -> Result<(), ProtoError> {
     // A receiver configured with dim 0 would accept empty vectors; refuse that outright.
     if got == 0 {
-        return Err(ProtoError::InvalidField {
-            field,
-            reason: "is 0; vectors must have at least one element".to_owned(),
-        });
+        return Err(ProtoError::InvalidField { field, reason: "is 0; vectors must have at least one element".to_owned() });
     }
     if u64::from(got) != expected as u64 {
-        return Err(ProtoError::DimensionMismatch {
-            field,
-            expected: expected as u64,
-            got: u64::from(got),
-        });
+        return Err(ProtoError::DimensionMismatch { field, expected: expected as u64, got: u64::from(got) });
     }
     Ok(())
 }
 
 pub(crate) fn check_len(column: &'static str, got: usize, expected: u64) -> Result<(), ProtoError> {
-    if got as u64 == expected {
-        Ok(())
-    } else {
-        Err(ProtoError::ColumnLength {
-            column,
-            expected,
-            got: got as u64,
-        })
-    }
+    if got as u64 == expected { Ok(()) } else { Err(ProtoError::ColumnLength { column, expected, got: got as u64 }) }
 }
 
 /// The packed floats of a field, or `None` when the column travels as bytes.
@@ -297,19 +257,10 @@ fn encoded_len_with_f32le_fields(shell: &impl Message, fields: FloatFields<'_>) 
 
 fn check_actor_id(actor_id: &str) -> Result<(), ProtoError> {
     if actor_id.is_empty() {
-        return Err(ProtoError::InvalidField {
-            field: "actor_id",
-            reason: "is empty".to_owned(),
-        });
+        return Err(ProtoError::InvalidField { field: "actor_id", reason: "is empty".to_owned() });
     }
     if actor_id.len() > MAX_ACTOR_ID_BYTES {
-        return Err(ProtoError::InvalidField {
-            field: "actor_id",
-            reason: format!(
-                "is {} bytes long, the limit is {MAX_ACTOR_ID_BYTES}",
-                actor_id.len()
-            ),
-        });
+        return Err(ProtoError::InvalidField { field: "actor_id", reason: format!("is {} bytes long, the limit is {MAX_ACTOR_ID_BYTES}", actor_id.len()) });
     }
     Ok(())
 }
@@ -339,26 +290,13 @@ impl TransitionBatch {
     /// version, `actor_id`, `sequence`, dims, row count, every column's length, finiteness of
     /// every float (the error names column, row and element), and that no row is both
     /// terminal and truncated. O(num_rows * (obs_dim + act_dim)); allocates only on error.
-    pub fn validate(
-        &self,
-        expected_obs_dim: usize,
-        expected_act_dim: usize,
-        max_rows: usize,
-    ) -> Result<usize, ProtoError> {
+    pub fn validate(&self, expected_obs_dim: usize, expected_act_dim: usize, max_rows: usize) -> Result<usize, ProtoError> {
         check_protocol_version(self.protocol_version)?;
         check_actor_id(&self.actor_id)?;
         if self.sequence == 0 {
-            return Err(ProtoError::InvalidField {
-                field: "sequence",
-                reason: "is 0; sequences start at 1".to_owned(),
-            });
+            return Err(ProtoError::InvalidField { field: "sequence", reason: "is 0; sequences start at 1".to_owned() });
         }
-        self.columns().check(
-            "TransitionBatch",
-            expected_obs_dim,
-            expected_act_dim,
-            max_rows,
-        )
+        self.columns().check("TransitionBatch", expected_obs_dim, expected_act_dim, max_rows)
     }
 
     /// Row `i`, borrowing from the batch; `None` if `i >= num_rows` or the batch is
@@ -403,49 +341,25 @@ impl SampledBatch {
     /// Same column checks as [`TransitionBatch::validate`], plus: `keys`, `probabilities`
     /// and `importance_weights` have one value per row, every probability is in (0, 1],
     /// every importance weight is finite and > 0, and `table_size` > 0.
-    pub fn validate(
-        &self,
-        expected_obs_dim: usize,
-        expected_act_dim: usize,
-        max_rows: usize,
-    ) -> Result<usize, ProtoError> {
+    pub fn validate(&self, expected_obs_dim: usize, expected_act_dim: usize, max_rows: usize) -> Result<usize, ProtoError> {
         check_protocol_version(self.protocol_version)?;
-        let rows =
-            self.columns()
-                .check("SampledBatch", expected_obs_dim, expected_act_dim, max_rows)?;
+        let rows = self.columns().check("SampledBatch", expected_obs_dim, expected_act_dim, max_rows)?;
         if self.table_size == 0 {
-            return Err(ProtoError::InvalidField {
-                field: "table_size",
-                reason: "is 0 although rows were sampled".to_owned(),
-            });
+            return Err(ProtoError::InvalidField { field: "table_size", reason: "is 0 although rows were sampled".to_owned() });
         }
         let rows_u64 = rows as u64;
         check_len("keys", self.keys.len(), rows_u64)?;
         check_len("probabilities", self.probabilities.len(), rows_u64)?;
-        check_len(
-            "importance_weights",
-            self.importance_weights.len(),
-            rows_u64,
-        )?;
+        check_len("importance_weights", self.importance_weights.len(), rows_u64)?;
         for (row, &p) in self.probabilities.iter().enumerate() {
             // NaN fails this comparison too.
             if !(p > 0.0 && p <= 1.0) {
-                return Err(ProtoError::OutOfRange {
-                    column: "probabilities",
-                    row,
-                    value: p,
-                    expected: "in (0, 1]",
-                });
+                return Err(ProtoError::OutOfRange { column: "probabilities", row, value: p, expected: "in (0, 1]" });
             }
         }
         for (row, &w) in self.importance_weights.iter().enumerate() {
             if !(w.is_finite() && w > 0.0) {
-                return Err(ProtoError::OutOfRange {
-                    column: "importance_weights",
-                    row,
-                    value: f64::from(w),
-                    expected: "finite and > 0",
-                });
+                return Err(ProtoError::OutOfRange { column: "importance_weights", row, value: f64::from(w), expected: "finite and > 0" });
             }
         }
         Ok(rows)
@@ -706,29 +620,16 @@ impl TransitionBatchBuilder {
     pub fn push(&mut self, t: Transition<'_>) -> Result<(), ProtoError> {
         let row = self.len();
         if self.batch.num_rows == u32::MAX {
-            return Err(ProtoError::TooManyRows {
-                rows: u64::from(u32::MAX) + 1,
-                max: u64::from(u32::MAX),
-            });
+            return Err(ProtoError::TooManyRows { rows: u64::from(u32::MAX) + 1, max: u64::from(u32::MAX) });
         }
         let obs_dim = self.batch.obs_dim as usize;
         let act_dim = self.batch.act_dim as usize;
         check_len("obs", t.obs.len(), obs_dim as u64)?;
         check_len("action", t.action.len(), act_dim as u64)?;
         check_len("next_obs", t.next_obs.len(), obs_dim as u64)?;
-        for (column, values) in [
-            ("obs", t.obs),
-            ("action", t.action),
-            ("reward", std::slice::from_ref(&t.reward)),
-            ("next_obs", t.next_obs),
-        ] {
+        for (column, values) in [("obs", t.obs), ("action", t.action), ("reward", std::slice::from_ref(&t.reward)), ("next_obs", t.next_obs)] {
             if let Some(element) = values.iter().position(|v| !v.is_finite()) {
-                return Err(ProtoError::NonFinite {
-                    column,
-                    row,
-                    element,
-                    value: f64::from(values[element]),
-                });
+                return Err(ProtoError::NonFinite { column, row, element, value: f64::from(values[element]) });
             }
         }
         if t.terminal && t.truncated {
@@ -753,11 +654,6 @@ impl TransitionBatchBuilder {
     /// actor's id and the batch's sequence number (>= 1, strictly increasing per actor; see
     /// `TransitionBatch.sequence` in `transition.proto`).
     pub fn finish(self, actor_id: impl Into<String>, sequence: u64) -> TransitionBatch {
-        TransitionBatch {
-            protocol_version: ProtocolVersion::V1 as i32,
-            actor_id: actor_id.into(),
-            sequence,
-            ..self.batch
-        }
+        TransitionBatch { protocol_version: ProtocolVersion::V1 as i32, actor_id: actor_id.into(), sequence, ..self.batch }
     }
 }

@@ -86,11 +86,7 @@ fn first_difference(checked_in: &str, generated: &str) -> String {
             (Some(a), Some(b)) if a == b => continue,
             (None, None) => return "only line endings differ".to_owned(),
             (a, b) => {
-                return format!(
-                    "line {line_no}:\n  checked in: {}\n  generated:  {}",
-                    a.unwrap_or("<end of file>"),
-                    b.unwrap_or("<end of file>")
-                );
+                return format!("line {line_no}:\n  checked in: {}\n  generated:  {}", a.unwrap_or("<end of file>"), b.unwrap_or("<end of file>"));
             }
         }
     }
@@ -105,10 +101,7 @@ fn checked_in_generated_code_matches_proto_files() {
 
     let regenerate = std::env::var_os(REGEN_ENV).is_some_and(|v| v == "1");
     let generated_names = rust_files(&generated_dir);
-    assert!(
-        !generated_names.is_empty(),
-        "code generation produced no files"
-    );
+    assert!(!generated_names.is_empty(), "code generation produced no files");
 
     let mut problems = Vec::new();
     for name in &generated_names {
@@ -121,10 +114,7 @@ fn checked_in_generated_code_matches_proto_files() {
         }
         match fs::read_to_string(&target) {
             Ok(checked_in) if checked_in == generated => {}
-            Ok(checked_in) => problems.push(format!(
-                "src/gen/{name} is out of date; first difference at {}",
-                first_difference(&checked_in, &generated)
-            )),
+            Ok(checked_in) => problems.push(format!("src/gen/{name} is out of date; first difference at {}", first_difference(&checked_in, &generated))),
             Err(e) => problems.push(format!("src/gen/{name} is missing ({e})")),
         }
     }
@@ -134,9 +124,7 @@ fn checked_in_generated_code_matches_proto_files() {
             if regenerate {
                 fs::remove_file(checked_in_dir.join(&name)).expect("remove stale src/gen file");
             } else {
-                problems.push(format!(
-                    "src/gen/{name} is not produced by the .proto files any more"
-                ));
+                problems.push(format!("src/gen/{name} is not produced by the .proto files any more"));
             }
         }
     }

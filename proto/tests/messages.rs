@@ -1,9 +1,6 @@
 //! Behaviour of the checks on SampledBatch, PriorityUpdate, weights and episode statistics.
 
-use mapless_proto::v1::{
-    Algorithm, Dtype, EpisodeStats, NamedTensor, PriorityUpdate, ProtocolVersion, SampleRequest,
-    SampledBatch, WeightsSnapshot,
-};
+use mapless_proto::v1::{Algorithm, Dtype, EpisodeStats, NamedTensor, PriorityUpdate, ProtocolVersion, SampleRequest, SampledBatch, WeightsSnapshot};
 use mapless_proto::{ProtoError, Transition, TransitionBatchBuilder};
 use prost::Message;
 use tonic::Code;
@@ -16,17 +13,7 @@ fn sampled_batch() -> SampledBatch {
     for i in 0..2u32 {
         let f = i as f32;
         builder
-            .push(Transition {
-                obs: &[f, -f],
-                action: &[0.5],
-                reward: f,
-                next_obs: &[f + 1.0, -f - 1.0],
-                terminal: i == 1,
-                truncated: false,
-                episode_id: 9,
-                step: i,
-                policy_version: 3,
-            })
+            .push(Transition { obs: &[f, -f], action: &[0.5], reward: f, next_obs: &[f + 1.0, -f - 1.0], terminal: i == 1, truncated: false, episode_id: 9, step: i, policy_version: 3 })
             .expect("valid row");
     }
     let t = builder.finish("unused", 1);
@@ -72,17 +59,7 @@ fn sampled_batch_rejects_probability_outside_unit_interval() {
         let mut batch = sampled_batch();
         batch.probabilities[1] = bad;
         let err = batch.validate(2, 1, 256).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                ProtoError::OutOfRange {
-                    column: "probabilities",
-                    row: 1,
-                    ..
-                }
-            ),
-            "{bad}: {err:?}"
-        );
+        assert!(matches!(err, ProtoError::OutOfRange { column: "probabilities", row: 1, .. }), "{bad}: {err:?}");
     }
 }
 
@@ -90,81 +67,29 @@ fn sampled_batch_rejects_probability_outside_unit_interval() {
 fn sampled_batch_rejects_missing_keys() {
     let mut batch = sampled_batch();
     batch.keys.pop();
-    assert_eq!(
-        batch.validate(2, 1, 256),
-        Err(ProtoError::ColumnLength {
-            column: "keys",
-            expected: 2,
-            got: 1
-        })
-    );
+    assert_eq!(batch.validate(2, 1, 256), Err(ProtoError::ColumnLength { column: "keys", expected: 2, got: 1 }));
 }
 
 #[test]
 fn sample_request_rejects_zero_or_oversized_batch_and_beta_outside_unit_interval() {
-    let request = |batch_size, importance_beta| SampleRequest {
-        protocol_version: V1,
-        batch_size,
-        importance_beta,
-        ..SampleRequest::default()
-    };
+    let request = |batch_size, importance_beta| SampleRequest { protocol_version: V1, batch_size, importance_beta, ..SampleRequest::default() };
     assert_eq!(request(256, 0.4).validate(1024), Ok(256));
-    for (batch_size, beta, field) in [
-        (0, 0.4, "batch_size"),
-        (1025, 0.4, "batch_size"),
-        (256, 1.5, "importance_beta"),
-        (256, f32::NAN, "importance_beta"),
-    ] {
+    for (batch_size, beta, field) in [(0, 0.4, "batch_size"), (1025, 0.4, "batch_size"), (256, 1.5, "importance_beta"), (256, f32::NAN, "importance_beta")] {
         let err = request(batch_size, beta).validate(1024).unwrap_err();
-        assert!(
-            matches!(err, ProtoError::InvalidField { field: f, .. } if f == field),
-            "{batch_size}, {beta}: {err:?}"
-        );
+        assert!(matches!(err, ProtoError::InvalidField { field: f, .. } if f == field), "{batch_size}, {beta}: {err:?}");
         assert_eq!(err.to_status().code(), Code::InvalidArgument);
     }
-    let unversioned = SampleRequest {
-        batch_size: 1,
-        ..SampleRequest::default()
-    };
-    assert_eq!(
-        unversioned.validate(1024).unwrap_err().to_status().code(),
-        Code::FailedPrecondition
-    );
+    let unversioned = SampleRequest { batch_size: 1, ..SampleRequest::default() };
+    assert_eq!(unversioned.validate(1024).unwrap_err().to_status().code(), Code::FailedPrecondition);
 }
 
 #[test]
 fn priority_update_rejects_negative_nan_and_mismatched_lengths() {
-    let update = |priorities: Vec<f64>| PriorityUpdate {
-        protocol_version: V1,
-        table: String::new(),
-        keys: vec![1, 2, 3],
-        priorities,
-    };
+    let update = |priorities: Vec<f64>| PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![1, 2, 3], priorities };
     assert_eq!(update(vec![0.0, 1.0, 2.5]).validate(1024), Ok(3));
-    assert!(matches!(
-        update(vec![0.0, -1.0, 2.5]).validate(1024),
-        Err(ProtoError::OutOfRange {
-            column: "priorities",
-            row: 1,
-            ..
-        })
-    ));
-    assert!(matches!(
-        update(vec![0.0, 1.0, f64::NAN]).validate(1024),
-        Err(ProtoError::NonFinite {
-            column: "priorities",
-            row: 2,
-            ..
-        })
-    ));
-    assert!(matches!(
-        update(vec![0.0, 1.0]).validate(1024),
-        Err(ProtoError::ColumnLength {
-            column: "priorities",
-            expected: 3,
-            got: 2
-        })
-    ));
+    assert!(matches!(update(vec![0.0, -1.0, 2.5]).validate(1024), Err(ProtoError::OutOfRange { column: "priorities", row: 1, .. })));
+    assert!(matches!(update(vec![0.0, 1.0, f64::NAN]).validate(1024), Err(ProtoError::NonFinite { column: "priorities", row: 2, .. })));
+    assert!(matches!(update(vec![0.0, 1.0]).validate(1024), Err(ProtoError::ColumnLength { column: "priorities", expected: 3, got: 2 })));
     let err = update(vec![0.0, 1.0, 2.0]).validate(2).unwrap_err();
     assert_eq!(err.to_status().code(), Code::ResourceExhausted);
 }
@@ -172,8 +97,7 @@ fn priority_update_rejects_negative_nan_and_mismatched_lengths() {
 #[test]
 fn f32_tensor_round_trips_through_little_endian_bytes() {
     let values = [1.0f32, -2.5, 3.25, f32::MIN_POSITIVE, 0.0, 7.0];
-    let tensor =
-        NamedTensor::from_f32("actor.fc1.weight", vec![2, 3], &values).expect("shape fits");
+    let tensor = NamedTensor::from_f32("actor.fc1.weight", vec![2, 3], &values).expect("shape fits");
 
     assert_eq!(tensor.dtype, Dtype::F32 as i32);
     assert_eq!(&tensor.data[..4], &1.0f32.to_le_bytes());
@@ -197,16 +121,9 @@ fn tensor_with_data_not_matching_shape_is_rejected() {
 
     let mut tensor = NamedTensor::from_f32("w", vec![2, 2], &[1.0; 4]).expect("fits");
     tensor.data.pop();
-    assert!(
-        matches!(tensor.validate(), Err(ProtoError::InvalidTensor { ref name, .. }) if name == "w")
-    );
+    assert!(matches!(tensor.validate(), Err(ProtoError::InvalidTensor { ref name, .. }) if name == "w"));
 
-    let overflowing = NamedTensor {
-        name: "huge".to_owned(),
-        shape: vec![u64::MAX, 2],
-        dtype: Dtype::F32 as i32,
-        data: Vec::new(),
-    };
+    let overflowing = NamedTensor { name: "huge".to_owned(), shape: vec![u64::MAX, 2], dtype: Dtype::F32 as i32, data: Vec::new() };
     assert!(overflowing.validate().is_err());
 }
 
@@ -227,20 +144,11 @@ fn weights_snapshot_rejects_duplicate_tensor_names_and_version_zero() {
     assert_eq!(snapshot.tensor("actor.out.bias"), Some(&tensor));
 
     snapshot.tensors.push(tensor);
-    assert!(matches!(
-        snapshot.validate(),
-        Err(ProtoError::InvalidTensor { .. })
-    ));
+    assert!(matches!(snapshot.validate(), Err(ProtoError::InvalidTensor { .. })));
 
     snapshot.tensors.pop();
     snapshot.version = 0;
-    assert!(matches!(
-        snapshot.validate(),
-        Err(ProtoError::InvalidField {
-            field: "version",
-            ..
-        })
-    ));
+    assert!(matches!(snapshot.validate(), Err(ProtoError::InvalidField { field: "version", .. })));
 }
 
 #[test]
@@ -258,19 +166,10 @@ fn episode_stats_must_end_for_exactly_one_reason() {
     };
     assert_eq!(stats(true, false).validate(), Ok(()));
     assert_eq!(stats(false, true).validate(), Ok(()));
-    assert_eq!(
-        stats(true, true).validate(),
-        Err(ProtoError::TerminalAndTruncated { row: 0 })
-    );
-    assert_eq!(
-        stats(false, false).validate(),
-        Err(ProtoError::EpisodeNotEnded { episode_id: 1 })
-    );
+    assert_eq!(stats(true, true).validate(), Err(ProtoError::TerminalAndTruncated { row: 0 }));
+    assert_eq!(stats(false, false).validate(), Err(ProtoError::EpisodeNotEnded { episode_id: 1 }));
 
     let mut nan = stats(true, false);
     nan.ees = f64::NAN;
-    assert!(matches!(
-        nan.validate(),
-        Err(ProtoError::NonFinite { column: "ees", .. })
-    ));
+    assert!(matches!(nan.validate(), Err(ProtoError::NonFinite { column: "ees", .. })));
 }

@@ -59,9 +59,7 @@ impl Row {
 fn build(rows: &[Row]) -> TransitionBatch {
     let mut builder = TransitionBatchBuilder::with_capacity(OBS_DIM, ACT_DIM, rows.len());
     for row in rows {
-        builder
-            .push(row.as_transition())
-            .expect("test rows are valid");
+        builder.push(row.as_transition()).expect("test rows are valid");
     }
     builder.finish("actor-test", 7)
 }
@@ -103,13 +101,9 @@ fn float_columns_are_packed_on_the_wire() {
     // Packed: one tag + length per column, 4 bytes per float. Unpacked would add a tag byte
     // per float, i.e. at least 25% more for the float columns.
     let batch = valid_batch();
-    let float_bytes =
-        4 * (batch.obs.len() + batch.action.len() + batch.reward.len() + batch.next_obs.len());
+    let float_bytes = 4 * (batch.obs.len() + batch.action.len() + batch.reward.len() + batch.next_obs.len());
     let encoded = batch.encoded_len();
-    assert!(
-        encoded < float_bytes + 200,
-        "{encoded} bytes encoded for {float_bytes} bytes of floats"
-    );
+    assert!(encoded < float_bytes + 200, "{encoded} bytes encoded for {float_bytes} bytes of floats");
 }
 
 #[test]
@@ -146,17 +140,12 @@ fn validate_rejects_row_that_is_both_terminal_and_truncated() {
 #[test]
 fn builder_rejects_row_that_is_both_terminal_and_truncated() {
     let mut builder = TransitionBatchBuilder::new(OBS_DIM, ACT_DIM);
-    builder
-        .push(Row::numbered(0).as_transition())
-        .expect("valid row");
+    builder.push(Row::numbered(0).as_transition()).expect("valid row");
     let mut both = Row::numbered(1);
     both.terminal = true;
     both.truncated = true;
 
-    assert_eq!(
-        builder.push(both.as_transition()),
-        Err(ProtoError::TerminalAndTruncated { row: 1 })
-    );
+    assert_eq!(builder.push(both.as_transition()), Err(ProtoError::TerminalAndTruncated { row: 1 }));
     assert_eq!(builder.len(), 1, "a rejected row is not appended");
 }
 
@@ -165,14 +154,7 @@ fn validate_rejects_wrong_obs_dim() {
     let batch = valid_batch();
 
     let err = batch.validate(OBS_DIM + 1, ACT_DIM, MAX_ROWS).unwrap_err();
-    assert_eq!(
-        err,
-        ProtoError::DimensionMismatch {
-            field: "obs_dim",
-            expected: OBS_DIM as u64 + 1,
-            got: OBS_DIM as u64,
-        }
-    );
+    assert_eq!(err, ProtoError::DimensionMismatch { field: "obs_dim", expected: OBS_DIM as u64 + 1, got: OBS_DIM as u64 });
     assert_eq!(err.to_status().code(), Code::InvalidArgument);
 }
 
@@ -182,14 +164,7 @@ fn validate_rejects_truncated_column_and_names_it() {
     batch.next_obs.pop();
 
     let err = validate(&batch).unwrap_err();
-    assert_eq!(
-        err,
-        ProtoError::ColumnLength {
-            column: "next_obs",
-            expected: 5 * OBS_DIM as u64,
-            got: 5 * OBS_DIM as u64 - 1,
-        }
-    );
+    assert_eq!(err, ProtoError::ColumnLength { column: "next_obs", expected: 5 * OBS_DIM as u64, got: 5 * OBS_DIM as u64 - 1 });
     assert_eq!(err.to_status().code(), Code::InvalidArgument);
     assert!(err.to_status().message().contains("next_obs"));
 }
@@ -220,11 +195,7 @@ fn validate_rejects_nan_reward_naming_column_and_row() {
     );
     let status = err.to_status();
     assert_eq!(status.code(), Code::InvalidArgument);
-    assert!(
-        status.message().contains("`reward` row 2"),
-        "{}",
-        status.message()
-    );
+    assert!(status.message().contains("`reward` row 2"), "{}", status.message());
 }
 
 #[test]
@@ -233,15 +204,7 @@ fn validate_rejects_infinite_obs_naming_row_and_element() {
     batch.obs[4 * OBS_DIM + 1] = f32::INFINITY;
 
     let err = validate(&batch).unwrap_err();
-    assert_eq!(
-        err,
-        ProtoError::NonFinite {
-            column: "obs",
-            row: 4,
-            element: 1,
-            value: f64::INFINITY,
-        }
-    );
+    assert_eq!(err, ProtoError::NonFinite { column: "obs", row: 4, element: 1, value: f64::INFINITY });
     assert_eq!(err.to_status().code(), Code::InvalidArgument);
 }
 
@@ -252,15 +215,7 @@ fn builder_rejects_non_finite_values_before_they_reach_the_wire() {
     row.next_obs[2] = f32::NEG_INFINITY;
 
     let err = builder.push(row.as_transition()).unwrap_err();
-    assert!(matches!(
-        err,
-        ProtoError::NonFinite {
-            column: "next_obs",
-            row: 0,
-            element: 2,
-            ..
-        }
-    ));
+    assert!(matches!(err, ProtoError::NonFinite { column: "next_obs", row: 0, element: 2, .. }));
     assert!(builder.is_empty());
 }
 
@@ -270,14 +225,7 @@ fn builder_rejects_vectors_of_the_wrong_length() {
     let mut row = Row::numbered(0);
     row.action.push(0.0);
 
-    assert_eq!(
-        builder.push(row.as_transition()),
-        Err(ProtoError::ColumnLength {
-            column: "action",
-            expected: ACT_DIM as u64,
-            got: ACT_DIM as u64 + 1,
-        })
-    );
+    assert_eq!(builder.push(row.as_transition()), Err(ProtoError::ColumnLength { column: "action", expected: ACT_DIM as u64, got: ACT_DIM as u64 + 1 }));
 }
 
 #[test]
@@ -298,18 +246,9 @@ fn validate_rejects_too_many_rows_with_resource_exhausted() {
     let batch = build(&rows);
 
     let err = validate(&batch).unwrap_err();
-    assert_eq!(
-        err,
-        ProtoError::TooManyRows {
-            rows: MAX_ROWS as u64 + 1,
-            max: MAX_ROWS as u64,
-        }
-    );
+    assert_eq!(err, ProtoError::TooManyRows { rows: MAX_ROWS as u64 + 1, max: MAX_ROWS as u64 });
     assert_eq!(err.to_status().code(), Code::ResourceExhausted);
-    assert_eq!(
-        batch.validate(OBS_DIM, ACT_DIM, MAX_ROWS + 1),
-        Ok(MAX_ROWS + 1)
-    );
+    assert_eq!(batch.validate(OBS_DIM, ACT_DIM, MAX_ROWS + 1), Ok(MAX_ROWS + 1));
 }
 
 #[test]
@@ -317,12 +256,7 @@ fn validate_rejects_empty_batch() {
     let batch = TransitionBatchBuilder::new(OBS_DIM, ACT_DIM).finish("actor-test", 1);
 
     let err = validate(&batch).unwrap_err();
-    assert_eq!(
-        err,
-        ProtoError::Empty {
-            message: "TransitionBatch"
-        }
-    );
+    assert_eq!(err, ProtoError::Empty { message: "TransitionBatch" });
     assert_eq!(err.to_status().code(), Code::InvalidArgument);
 }
 
@@ -330,43 +264,22 @@ fn validate_rejects_empty_batch() {
 fn validate_rejects_missing_actor_id_and_zero_sequence() {
     let mut batch = valid_batch();
     batch.actor_id.clear();
-    assert!(matches!(
-        validate(&batch),
-        Err(ProtoError::InvalidField {
-            field: "actor_id",
-            ..
-        })
-    ));
+    assert!(matches!(validate(&batch), Err(ProtoError::InvalidField { field: "actor_id", .. })));
 
     let mut batch = valid_batch();
     batch.actor_id = "x".repeat(mapless_proto::MAX_ACTOR_ID_BYTES + 1);
-    assert!(matches!(
-        validate(&batch),
-        Err(ProtoError::InvalidField {
-            field: "actor_id",
-            ..
-        })
-    ));
+    assert!(matches!(validate(&batch), Err(ProtoError::InvalidField { field: "actor_id", .. })));
 
     let mut batch = valid_batch();
     batch.sequence = 0;
-    assert!(matches!(
-        validate(&batch),
-        Err(ProtoError::InvalidField {
-            field: "sequence",
-            ..
-        })
-    ));
+    assert!(matches!(validate(&batch), Err(ProtoError::InvalidField { field: "sequence", .. })));
 }
 
 #[test]
 fn proto_error_converts_into_tonic_status() {
     let status: tonic::Status = ProtoError::TooManyRows { rows: 2, max: 1 }.into();
     assert_eq!(status.code(), Code::ResourceExhausted);
-    assert_eq!(
-        mapless_proto::check_protocol_version(ProtocolVersion::V1 as i32),
-        Ok(())
-    );
+    assert_eq!(mapless_proto::check_protocol_version(ProtocolVersion::V1 as i32), Ok(()));
     assert_eq!(mapless_proto::PROTOCOL_VERSION, ProtocolVersion::V1 as u32);
 }
 
@@ -474,10 +387,7 @@ fn validate_refuses_malformed_bytes_columns_naming_them() {
 
     let mut short = bytes_batch();
     short.next_obs_f32le = short.next_obs_f32le.slice(4..);
-    assert_eq!(
-        validate(&short),
-        Err(ProtoError::ColumnLength { column: "next_obs_f32le", expected: 5 * OBS_DIM as u64, got: 5 * OBS_DIM as u64 - 1 })
-    );
+    assert_eq!(validate(&short), Err(ProtoError::ColumnLength { column: "next_obs_f32le", expected: 5 * OBS_DIM as u64, got: 5 * OBS_DIM as u64 - 1 }));
 
     let mut missing = bytes_batch();
     missing.reward_f32le = Bytes::new();
@@ -489,10 +399,7 @@ fn validate_refuses_malformed_bytes_columns_naming_them() {
     obs[4 * at..4 * at + 4].copy_from_slice(&f32::NEG_INFINITY.to_le_bytes());
     inf.obs_f32le = obs.into();
     let err = validate(&inf).unwrap_err();
-    assert!(
-        matches!(err, ProtoError::NonFinite { column: "obs_f32le", row: 2, element: 1, value } if value == f64::NEG_INFINITY),
-        "{err:?}"
-    );
+    assert!(matches!(err, ProtoError::NonFinite { column: "obs_f32le", row: 2, element: 1, value } if value == f64::NEG_INFINITY), "{err:?}");
 }
 
 #[test]

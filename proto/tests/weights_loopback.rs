@@ -8,9 +8,7 @@ use std::time::Duration;
 
 use mapless_proto::v1::weights_service_client::WeightsServiceClient;
 use mapless_proto::v1::weights_service_server::{WeightsService, WeightsServiceServer};
-use mapless_proto::v1::{
-    Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot,
-};
+use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot};
 use mapless_proto::{MAX_MESSAGE_BYTES, check_protocol_version};
 use tokio::sync::{oneshot, watch};
 use tokio_stream::wrappers::{TcpListenerStream, WatchStream};
@@ -31,10 +29,7 @@ struct Weights {
 impl WeightsService for Weights {
     type SubscribeStream = Pin<Box<dyn Stream<Item = Result<WeightsSnapshot, Status>> + Send>>;
 
-    async fn subscribe(
-        &self,
-        request: Request<SubscribeRequest>,
-    ) -> Result<Response<Self::SubscribeStream>, Status> {
+    async fn subscribe(&self, request: Request<SubscribeRequest>) -> Result<Response<Self::SubscribeStream>, Status> {
         let request = request.into_inner();
         check_protocol_version(request.protocol_version)?;
         // Highest version this stream has sent (or the client already has).
@@ -52,8 +47,7 @@ impl WeightsService for Weights {
 }
 
 fn snapshot(version: u64) -> Arc<WeightsSnapshot> {
-    let bias = NamedTensor::from_f32("actor.out.bias", vec![2], &[version as f32, -1.0])
-        .expect("shape matches");
+    let bias = NamedTensor::from_f32("actor.out.bias", vec![2], &[version as f32, -1.0]).expect("shape matches");
     Arc::new(WeightsSnapshot {
         protocol_version: ProtocolVersion::V1 as i32,
         version,
@@ -68,11 +62,7 @@ fn snapshot(version: u64) -> Arc<WeightsSnapshot> {
 
 /// The next snapshot on the stream, failing the test after 10 s instead of hanging.
 async fn next(stream: &mut tonic::Streaming<WeightsSnapshot>) -> WeightsSnapshot {
-    tokio::time::timeout(Duration::from_secs(10), stream.message())
-        .await
-        .expect("snapshot within 10 s")
-        .expect("stream healthy")
-        .expect("stream open")
+    tokio::time::timeout(Duration::from_secs(10), stream.message()).await.expect("snapshot within 10 s").expect("stream healthy").expect("stream open")
 }
 
 #[tokio::test]
@@ -83,59 +73,27 @@ async fn subscriber_gets_newest_snapshot_at_once_then_each_newer_one() {
     publish.send_replace(Some(snapshot(1)));
     publish.send_replace(Some(snapshot(2)));
 
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind loopback");
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind loopback");
     let addr = listener.local_addr().expect("bound address");
     let (shutdown_tx, shutdown_rx) = oneshot::channel::<()>();
-    let service = WeightsServiceServer::new(Weights { latest })
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let server = tokio::spawn(
-        Server::builder()
-            .add_service(service)
-            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
-                let _ = shutdown_rx.await;
-            }),
-    );
+    let service = WeightsServiceServer::new(Weights { latest }).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let server = tokio::spawn(Server::builder().add_service(service).serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+        let _ = shutdown_rx.await;
+    }));
 
-    let mut client = WeightsServiceClient::connect(format!("http://{addr}"))
-        .await
-        .expect("connect")
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let mut client = WeightsServiceClient::connect(format!("http://{addr}")).await.expect("connect").max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
 
     // A request from an unknown contract version is refused before any stream starts.
-    let refused = client
-        .subscribe(SubscribeRequest {
-            protocol_version: 7,
-            ..SubscribeRequest::default()
-        })
-        .await
-        .expect_err("unknown protocol version");
+    let refused = client.subscribe(SubscribeRequest { protocol_version: 7, ..SubscribeRequest::default() }).await.expect_err("unknown protocol version");
     assert_eq!(refused.code(), Code::FailedPrecondition);
 
-    let mut stream = client
-        .subscribe(SubscribeRequest {
-            protocol_version: ProtocolVersion::V1 as i32,
-            min_version: 1,
-            subscriber_id: "actor-test".to_owned(),
-        })
-        .await
-        .expect("subscribe")
-        .into_inner();
+    let mut stream = client.subscribe(SubscribeRequest { protocol_version: ProtocolVersion::V1 as i32, min_version: 1, subscriber_id: "actor-test".to_owned() }).await.expect("subscribe").into_inner();
 
     let first = next(&mut stream).await;
-    assert_eq!(
-        first.version, 2,
-        "late subscriber starts at the newest version"
-    );
+    assert_eq!(first.version, 2, "late subscriber starts at the newest version");
     assert_eq!(first.validate(), Ok(()));
     assert_eq!(first, *snapshot(2), "every field survives the wire");
-    assert_eq!(
-        first.tensor("actor.out.bias").expect("bias").to_f32_vec(),
-        Ok(vec![2.0, -1.0])
-    );
+    assert_eq!(first.tensor("actor.out.bias").expect("bias").to_f32_vec(), Ok(vec![2.0, -1.0]));
 
     publish.send_replace(Some(snapshot(3)));
     let second = next(&mut stream).await;
@@ -145,9 +103,5 @@ async fn subscriber_gets_newest_snapshot_at_once_then_each_newer_one() {
     drop(stream);
     drop(client);
     shutdown_tx.send(()).expect("server still running");
-    tokio::time::timeout(Duration::from_secs(10), server)
-        .await
-        .expect("server stops within 10 s")
-        .expect("server task did not panic")
-        .expect("server exits cleanly");
+    tokio::time::timeout(Duration::from_secs(10), server).await.expect("server stops within 10 s").expect("server task did not panic").expect("server exits cleanly");
 }

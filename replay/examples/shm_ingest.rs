@@ -20,12 +20,8 @@ fn main() {
         std::process::exit(2);
     }
     let obs_dim = args[2].parse().unwrap_or(17);
-    let table_cfg = TableConfig {
-        capacity: 100_000,
-        obs_dim,
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() },
-        ..TableConfig::default()
-    };
+    let table_cfg =
+        TableConfig { capacity: 100_000, obs_dim, rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() }, ..TableConfig::default() };
     let table = Arc::new(Table::new(table_cfg, 1).expect("table config"));
     let cfg = ShmConfig { prefix: args[1].clone(), domain: args.get(3).cloned().unwrap_or_default(), ..ShmConfig::default() };
     let _ingest = match ShmIngest::spawn(Arc::clone(&table), cfg) {

@@ -20,20 +20,14 @@ use mapless_replay::{RateLimiterConfig, Table, TableConfig};
 use prost::Message;
 
 fn table(obs_dim: usize) -> Table {
-    let cfg = TableConfig {
-        capacity: 1_000_000,
-        obs_dim,
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() },
-        ..TableConfig::default()
-    };
+    let cfg =
+        TableConfig { capacity: 1_000_000, obs_dim, rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() }, ..TableConfig::default() };
     Table::new(cfg, 7).expect("table config")
 }
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let opt = |name: &str, default: u64| -> u64 {
-        args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default)
-    };
+    let opt = |name: &str, default: u64| -> u64 { args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).and_then(|v| v.parse().ok()).unwrap_or(default) };
     let writers = opt("--writers", 4) as usize;
     let rows = opt("--rows", 256) as usize;
     let batches = opt("--batches", 4000);

@@ -25,13 +25,7 @@ pub const BATCH_ROWS: usize = 256;
 
 /// A table sized for `obs_dim`, no rate limiting (the benches measure transport and storage).
 pub fn bench_table(capacity: usize, obs_dim: usize) -> Result<Table, ReplayError> {
-    let cfg = TableConfig {
-        capacity,
-        obs_dim,
-        act_dim: 2,
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, error_buffer: 0.0 },
-        ..TableConfig::default()
-    };
+    let cfg = TableConfig { capacity, obs_dim, act_dim: 2, rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, error_buffer: 0.0 }, ..TableConfig::default() };
     Table::new(cfg, 1)
 }
 
@@ -62,11 +56,7 @@ fn runtime() -> tokio::runtime::Runtime {
 }
 
 async fn client(addr: std::net::SocketAddr) -> ReplayServiceClient<tonic::transport::Channel> {
-    ReplayServiceClient::connect(format!("http://{addr}"))
-        .await
-        .expect("connect to the in-process server")
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES)
+    ReplayServiceClient::connect(format!("http://{addr}")).await.expect("connect to the in-process server").max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES)
 }
 
 /// Rows of the ingest benchmarks' table (paper Table I).
@@ -220,11 +210,7 @@ pub fn memory(rows: usize, obs_dim: usize) -> (u64, u64) {
 
 /// This process's resident set size (Linux /proc), 0 where unavailable.
 pub fn resident_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/statm")
-        .ok()
-        .and_then(|s| s.split_whitespace().nth(1).and_then(|p| p.parse::<u64>().ok()))
-        .map(|pages| pages * 4096)
-        .unwrap_or(0)
+    std::fs::read_to_string("/proc/self/statm").ok().and_then(|s| s.split_whitespace().nth(1).and_then(|p| p.parse::<u64>().ok())).map(|pages| pages * 4096).unwrap_or(0)
 }
 
 /// Rows per second stored over iceoryx2 shared memory with `writers` writer threads (each an

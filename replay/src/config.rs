@@ -119,10 +119,10 @@ impl TableConfig {
         if self.max_batch_rows == 0 || self.max_sample_rows == 0 {
             return bad("max_batch_rows and max_sample_rows must be ≥ 1".into());
         }
-        if let SamplerConfig::Prioritized { alpha, beta, epsilon } = self.sampler {
-            if !(alpha.is_finite() && alpha >= 0.0) || !(beta.is_finite() && beta >= 0.0) || !(epsilon.is_finite() && epsilon >= 0.0) {
-                return bad("prioritized sampler needs finite alpha, beta, epsilon ≥ 0".into());
-            }
+        if let SamplerConfig::Prioritized { alpha, beta, epsilon } = self.sampler
+            && (!(alpha.is_finite() && alpha >= 0.0) || !(beta.is_finite() && beta >= 0.0) || !(epsilon.is_finite() && epsilon >= 0.0))
+        {
+            return bad("prioritized sampler needs finite alpha, beta, epsilon ≥ 0".into());
         }
         let rl = &self.rate_limiter;
         if rl.min_size_to_sample as usize > self.capacity {
@@ -134,10 +134,7 @@ impl TableConfig {
             }
             let need = (self.max_sample_rows as f64).max(self.max_batch_rows as f64 * spi);
             if !(rl.error_buffer.is_finite() && rl.error_buffer >= need) {
-                return bad(format!(
-                    "rate_limiter.error_buffer {} must be ≥ max(max_sample_rows, max_batch_rows × samples_per_insert) = {need}, or callers can wait forever",
-                    rl.error_buffer
-                ));
+                return bad(format!("rate_limiter.error_buffer {} must be ≥ max(max_sample_rows, max_batch_rows × samples_per_insert) = {need}, or callers can wait forever", rl.error_buffer));
             }
         }
         Ok(())
@@ -168,9 +165,7 @@ pub enum FsyncPolicy {
 #[serde(untagged)]
 enum FsyncRepr {
     Word(FsyncWord),
-    Interval {
-        interval_ms: u64,
-    },
+    Interval { interval_ms: u64 },
 }
 
 #[derive(Clone, Copy, Serialize, Deserialize)]

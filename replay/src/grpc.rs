@@ -25,10 +25,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use mapless_proto::v1::replay_service_server::ReplayService;
-use mapless_proto::v1::{
-    InsertAck, PriorityUpdate, PriorityUpdateResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse,
-    TransitionBatch,
-};
+use mapless_proto::v1::{InsertAck, PriorityUpdate, PriorityUpdateResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse, TransitionBatch};
 use mapless_proto::{FloatEncoding, MAX_ACTOR_ID_BYTES, MAX_MESSAGE_BYTES, check_protocol_version};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -94,11 +91,7 @@ impl ReplayGrpc {
     /// v1 servers host one table: "" or its name (replay.proto, ReplayService).
     fn check_table(&self, name: &str) -> Result<(), Status> {
         let ours = &self.table.config().name;
-        if name.is_empty() || name == ours {
-            Ok(())
-        } else {
-            Err(Status::not_found(format!("no table `{name}` on this server; it hosts `{ours}` (or pass \"\")")))
-        }
+        if name.is_empty() || name == ours { Ok(()) } else { Err(Status::not_found(format!("no table `{name}` on this server; it hosts `{ours}` (or pass \"\")"))) }
     }
 
     fn stop_flag(&self) -> StopFlag {
@@ -136,11 +129,7 @@ fn shutting_down() -> Status {
 /// Runs a table call that may block on the rate limiter, in slices of [`POLL_INTERVAL`] up to
 /// `deadline` (None: without limit). Between slices it returns `None` if `cancelled()`.
 /// A final DeadlineExceeded reports the whole wait, not the last slice.
-fn wait_polled<T>(
-    deadline: Option<Instant>,
-    cancelled: impl Fn() -> bool,
-    mut op: impl FnMut(Option<Instant>) -> Result<T, ReplayError>,
-) -> Option<Result<T, ReplayError>> {
+fn wait_polled<T>(deadline: Option<Instant>, cancelled: impl Fn() -> bool, mut op: impl FnMut(Option<Instant>) -> Result<T, ReplayError>) -> Option<Result<T, ReplayError>> {
     let start = Instant::now();
     loop {
         let slice_end = Instant::now() + POLL_INTERVAL;
@@ -217,8 +206,7 @@ fn decode_rejection(status: &Status) -> Option<Status> {
         // prost could not parse the bytes (tonic-prost reports INTERNAL; for us it is the
         // client's malformed input, so INVALID_ARGUMENT), or a bad compression flag.
         tonic::Code::Internal
-            if status.message().starts_with("failed to decode Protobuf message")
-                || status.message().starts_with("protocol error: received message with invalid compression flag") =>
+            if status.message().starts_with("failed to decode Protobuf message") || status.message().starts_with("protocol error: received message with invalid compression flag") =>
         {
             Some(Status::invalid_argument(format!("malformed TransitionBatch: {}", status.message())))
         }
@@ -308,10 +296,7 @@ impl InsertSession {
             None => {
                 let slot = StreamSlot::claim(&self.open_streams, &batch.actor_id).ok_or_else(|| {
                     warn!(actor_id = %batch.actor_id, "second Insert stream for one actor refused");
-                    Status::aborted(format!(
-                        "another Insert stream of actor_id `{}` is open; use one stream per actor (retry after it ends)",
-                        batch.actor_id
-                    ))
+                    Status::aborted(format!("another Insert stream of actor_id `{}` is open; use one stream per actor (retry after it ends)", batch.actor_id))
                 })?;
                 tracing::Span::current().record("actor_id", batch.actor_id.as_str());
                 info!("insert stream opened");
@@ -352,14 +337,7 @@ impl ReplayService for ReplayGrpc {
         let peer = request.remote_addr();
         let span = info_span!("Insert", table = %self.table.config().name, actor_id = tracing::field::Empty, peer = ?peer);
         let (acks, rx) = mpsc::channel(ACK_CHANNEL_DEPTH);
-        let session = InsertSession {
-            table: Arc::clone(&self.table),
-            open_streams: Arc::clone(&self.open_streams),
-            stop: self.stop_flag(),
-            deadline,
-            acks,
-            slot: None,
-        };
+        let session = InsertSession { table: Arc::clone(&self.table), open_streams: Arc::clone(&self.open_streams), stop: self.stop_flag(), deadline, acks, slot: None };
         tokio::spawn(session.run(request.into_inner()).instrument(span));
         Ok(Response::new(ReceiverStream::new(rx)))
     }
@@ -426,10 +404,7 @@ impl ReplayService for ReplayGrpc {
         self.check_table(&update.table)?;
         let span = info_span!("UpdatePriorities", table = %self.table.config().name, keys = update.keys.len());
         if self.table.config().sampler == SamplerConfig::Uniform {
-            return Err(Status::failed_precondition(format!(
-                "table `{}` samples uniformly; it has no priorities to update",
-                self.table.config().name
-            )));
+            return Err(Status::failed_precondition(format!("table `{}` samples uniformly; it has no priorities to update", self.table.config().name)));
         }
         update.validate(MAX_PRIORITY_KEYS)?;
         let table = Arc::clone(&self.table);
@@ -496,10 +471,14 @@ mod tests {
     #[test]
     fn polled_wait_reports_the_whole_wait_on_deadline() {
         let deadline = Instant::now() + Duration::from_millis(250);
-        let r: Option<Result<(), ReplayError>> = wait_polled(Some(deadline), || false, |until| {
-            std::thread::sleep(until.expect("always a slice deadline").saturating_duration_since(Instant::now()));
-            Err(ReplayError::DeadlineExceeded { op: "insert", waited_ms: 1, state: String::new() })
-        });
+        let r: Option<Result<(), ReplayError>> = wait_polled(
+            Some(deadline),
+            || false,
+            |until| {
+                std::thread::sleep(until.expect("always a slice deadline").saturating_duration_since(Instant::now()));
+                Err(ReplayError::DeadlineExceeded { op: "insert", waited_ms: 1, state: String::new() })
+            },
+        );
         match r {
             Some(Err(ReplayError::DeadlineExceeded { waited_ms, .. })) => assert!(waited_ms >= 240, "{waited_ms}"),
             other => panic!("expected DeadlineExceeded, got {other:?}"),
@@ -508,8 +487,7 @@ mod tests {
 
     #[test]
     fn polled_wait_gives_up_when_cancelled() {
-        let r: Option<Result<(), ReplayError>> =
-            wait_polled(None, || true, |_| Err(ReplayError::DeadlineExceeded { op: "sample", waited_ms: 0, state: String::new() }));
+        let r: Option<Result<(), ReplayError>> = wait_polled(None, || true, |_| Err(ReplayError::DeadlineExceeded { op: "sample", waited_ms: 0, state: String::new() }));
         assert!(r.is_none());
     }
 }

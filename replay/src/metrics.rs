@@ -73,29 +73,14 @@ pub fn render(table: &Table) -> String {
         "replay_rate_limiter_blocked_seconds_total",
         "counter",
         "Seconds inserts or samples spent waiting on the rate limiter.",
-        &[
-            (format!("table=\"{t}\",side=\"insert\""), rl.inserts_blocked_ms as f64 / 1e3),
-            (format!("table=\"{t}\",side=\"sample\""), rl.samples_blocked_ms as f64 / 1e3),
-        ],
+        &[(format!("table=\"{t}\",side=\"insert\""), rl.inserts_blocked_ms as f64 / 1e3), (format!("table=\"{t}\",side=\"sample\""), rl.samples_blocked_ms as f64 / 1e3)],
     );
-    let per_actor = |f: &dyn Fn(&ActorStats) -> f64| -> Vec<(String, f64)> {
-        actors.iter().map(|(id, a)| (format!("table=\"{t}\",actor=\"{}\"", escape(id)), f(a))).collect()
-    };
+    let per_actor = |f: &dyn Fn(&ActorStats) -> f64| -> Vec<(String, f64)> { actors.iter().map(|(id, a)| (format!("table=\"{t}\",actor=\"{}\"", escape(id)), f(a))).collect() };
     family("replay_actor_rows_total", "counter", "Rows inserted per actor.", &per_actor(&|a| a.rows as f64));
     family("replay_actor_batches_total", "counter", "Batches inserted per actor (duplicates excluded).", &per_actor(&|a| a.batches as f64));
-    family(
-        "replay_actor_duplicate_batches_total",
-        "counter",
-        "Batches acknowledged as duplicates (retransmissions) per actor.",
-        &per_actor(&|a| a.duplicate_batches as f64),
-    );
+    family("replay_actor_duplicate_batches_total", "counter", "Batches acknowledged as duplicates (retransmissions) per actor.", &per_actor(&|a| a.duplicate_batches as f64));
     family("replay_actor_rejected_batches_total", "counter", "Batches refused as invalid per actor.", &per_actor(&|a| a.rejected_batches as f64));
-    family(
-        "replay_actor_policy_version_lag",
-        "gauge",
-        "Newest policy_version seen across actors minus this actor's newest.",
-        &per_actor(&|a| policy_version_lag(newest, a) as f64),
-    );
+    family("replay_actor_policy_version_lag", "gauge", "Newest policy_version seen across actors minus this actor's newest.", &per_actor(&|a| policy_version_lag(newest, a) as f64));
     out
 }
 

@@ -183,11 +183,7 @@ impl ServerConfig {
 
     /// What [`serve`] needs besides the listener and the table.
     pub fn serve_options(&self) -> Result<ServeOptions, ServerError> {
-        Ok(ServeOptions {
-            security: self.security()?,
-            max_prefetch: self.max_prefetch,
-            shutdown_grace: Duration::from_millis(self.shutdown_grace_ms),
-        })
+        Ok(ServeOptions { security: self.security()?, max_prefetch: self.max_prefetch, shutdown_grace: Duration::from_millis(self.shutdown_grace_ms) })
     }
 }
 
@@ -266,12 +262,7 @@ pub async fn run(listener: TcpListener, table: Arc<Table>, shutdown: impl Future
 /// Serves `table` on `listener` until `shutdown` resolves. Refuses a non-loopback listener
 /// without TLS and a token. Does not close the table (the caller owns it and may share it
 /// with other ingest paths).
-pub async fn serve(
-    listener: TcpListener,
-    table: Arc<Table>,
-    options: ServeOptions,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> Result<(), ServerError> {
+pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), ServerError> {
     let addr = listener.local_addr()?;
     let security = &options.security;
     if !addr.ip().is_loopback() && (security.tls.is_none() || security.token.is_none()) {

@@ -655,10 +655,7 @@ impl Ingest {
             }
         };
         if batch.actor_id != actor || batch.sequence != header.sequence {
-            let why = format!(
-                "request header says actor `{actor}` sequence {}, the batch says actor `{}` sequence {}",
-                header.sequence, batch.actor_id, batch.sequence
-            );
+            let why = format!("request header says actor `{actor}` sequence {}, the batch says actor `{}` sequence {}", header.sequence, batch.actor_id, batch.sequence);
             drop(batch);
             self.recycle(payload);
             return self.reject(&request, &actor, header.sequence, &why);
@@ -774,10 +771,7 @@ fn respond(request: &InsertRequest, ack: WireAck) {
     }
 }
 
-fn rr_builder<S: iceoryx2::service::Service>(
-    node: &Node<S>,
-    name: &ServiceName,
-) -> iceoryx2::service::builder::request_response::Builder<[u8], BatchHeader, WireAck, (), S> {
+fn rr_builder<S: iceoryx2::service::Service>(node: &Node<S>, name: &ServiceName) -> iceoryx2::service::builder::request_response::Builder<[u8], BatchHeader, WireAck, (), S> {
     node.service_builder(name).request_response::<[u8], WireAck>().request_user_header::<BatchHeader>()
 }
 
@@ -1004,10 +998,7 @@ impl ShmWriter {
     #[doc(hidden)]
     pub fn send_encoded(&mut self, sequence: u64, bytes: Vec<u8>) -> Result<(), ReplayError> {
         if sequence <= self.last_sequence {
-            return Err(ReplayError::BadRequest(format!(
-                "sequence {sequence} is not above the last sent {}; unacknowledged batches are resent by reconnect()",
-                self.last_sequence
-            )));
+            return Err(ReplayError::BadRequest(format!("sequence {sequence} is not above the last sent {}; unacknowledged batches are resent by reconnect()", self.last_sequence)));
         }
         if bytes.len() > self.cfg.max_payload_bytes {
             return Err(ReplayError::BadRequest(format!("{} bytes exceed shm.max_payload_bytes = {}", bytes.len(), self.cfg.max_payload_bytes)));

@@ -410,7 +410,10 @@ impl Table {
                     if (m.capacity, m.obs_dim, m.act_dim) != (cap as u64, d as u64, a as u64) {
                         return Err(ReplayError::InvalidConfig(format!(
                             "{} was written by a table of capacity {}, obs_dim {}, act_dim {}; this one has {cap}, {d}, {a}. Use the same shape or move the directory away",
-                            path.display(), m.capacity, m.obs_dim, m.act_dim
+                            path.display(),
+                            m.capacity,
+                            m.obs_dim,
+                            m.act_dim
                         )));
                     }
                     base = Some((path, snap));
@@ -455,9 +458,7 @@ impl Table {
             report.snapshot = Some(path);
             report.snapshot_lsn = m.lsn;
         } else if let Some(start) = log_start.filter(|&start| start > 1) {
-            report.warnings.push(format!(
-                "no usable snapshot and the log starts at LSN {start}: de-duplication marks and counters from before it are lost"
-            ));
+            report.warnings.push(format!("no usable snapshot and the log starts at LSN {start}: de-duplication marks and counters from before it are lost"));
         }
 
         let mut filled = vec![false; cap];
@@ -475,7 +476,9 @@ impl Table {
                 if (batch.obs_dim as usize, batch.act_dim as usize) != (d, a) {
                     return Err(Err(ReplayError::InvalidConfig(format!(
                         "the log in {} holds rows of obs_dim {}, act_dim {}; this table has {d}, {a}. Use the same dims or move the directory away",
-                        wal_dir.display(), batch.obs_dim, batch.act_dim
+                        wal_dir.display(),
+                        batch.obs_dim,
+                        batch.act_dim
                     ))));
                 }
                 let rows = batch.validate(d, a, usize::MAX).map_err(|e| Ok(format!("corrupt: logged batch is invalid: {e}")))?;
@@ -808,13 +811,7 @@ impl Table {
     }
 
     /// Waits on the condition variable until `ready` or the deadline; accounts blocked time.
-    fn wait<'a>(
-        &self,
-        mut st: MutexGuard<'a, State>,
-        deadline: Option<Instant>,
-        op: &'static str,
-        ready: impl Fn(&State) -> bool,
-    ) -> Result<MutexGuard<'a, State>, ReplayError> {
+    fn wait<'a>(&self, mut st: MutexGuard<'a, State>, deadline: Option<Instant>, op: &'static str, ready: impl Fn(&State) -> bool) -> Result<MutexGuard<'a, State>, ReplayError> {
         let start = Instant::now();
         let account_blocked = |st: &mut State| {
             let ns = start.elapsed().as_nanos() as u64;
@@ -1042,15 +1039,13 @@ impl PersistShared {
         if let FsyncPolicy::IntervalMs(ms) = p.fsync {
             let sh = Arc::clone(shared);
             let every = Duration::from_millis(ms);
-            let started = std::thread::Builder::new()
-                .name(format!("wal-flush-{}", shared.name))
-                .spawn(move || {
-                    while !sh.wait_stop(every) {
-                        if let Err(e) = sh.sync.sync_if_dirty() {
-                            tracing::error!(table = %sh.name, error = %e, "log fsync failed; further inserts are refused");
-                        }
+            let started = std::thread::Builder::new().name(format!("wal-flush-{}", shared.name)).spawn(move || {
+                while !sh.wait_stop(every) {
+                    if let Err(e) = sh.sync.sync_if_dirty() {
+                        tracing::error!(table = %sh.name, error = %e, "log fsync failed; further inserts are refused");
                     }
-                });
+                }
+            });
             match started {
                 Ok(h) => threads.push(h),
                 Err(e) => return Err((spawn_err(e), threads)),

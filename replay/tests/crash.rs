@@ -26,12 +26,12 @@ fn batch(writer: u64, seq: u64) -> TransitionBatch {
     let mut b = TransitionBatchBuilder::new(OBS, 2);
     for r in 0..ROWS {
         let obs = [writer as f32, seq as f32, r as f32];
-        b.push(Transition { obs: &obs, action: &[0.0, 0.0], reward: 1.0, next_obs: &obs, terminal: false, truncated: false, episode_id: seq, step: r as u32, policy_version: 0 })
-            .expect("valid row");
+        b.push(Transition { obs: &obs, action: &[0.0, 0.0], reward: 1.0, next_obs: &obs, terminal: false, truncated: false, episode_id: seq, step: r as u32, policy_version: 0 }).expect("valid row");
     }
     b.finish(format!("writer-{writer}"), seq)
 }
 
+#[allow(clippy::zombie_processes)] // the caller owns the child and kills or waits for it
 fn start(dir: &std::path::Path) -> (Child, SocketAddr) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_mapless-replay"))
         .args(["--listen", "127.0.0.1:0", "--no-metrics", "--no-shm", "--capacity", "1000000", "--obs-dim", "3", "--act-dim", "2", "--min-size-to-sample", "1", "--data-dir"])
@@ -141,7 +141,16 @@ async fn kill_9_mid_stream_loses_no_acknowledged_batch_and_resends_insert_nothin
 
     // And the rows are the ones sent: sample the table and check identities.
     let mut s = client
-        .sample(SampleRequest { protocol_version: ProtocolVersion::V1 as i32, table: after.table.clone(), batch_size: 1000, prefetch: 2, timeout_ms: 5000, max_batches: 5, importance_beta: 0.0, float_columns_as_bytes: false })
+        .sample(SampleRequest {
+            protocol_version: ProtocolVersion::V1 as i32,
+            table: after.table.clone(),
+            batch_size: 1000,
+            prefetch: 2,
+            timeout_ms: 5000,
+            max_batches: 5,
+            importance_beta: 0.0,
+            float_columns_as_bytes: false,
+        })
         .await
         .expect("sample")
         .into_inner();

@@ -10,12 +10,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
-use mapless_proto::v1::{
-    InsertAck, PriorityUpdate, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest, ServerInfoResponse,
-    TransitionBatch,
-};
+use mapless_proto::v1::{InsertAck, PriorityUpdate, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest, ServerInfoResponse, TransitionBatch};
 use mapless_proto::{FloatEncoding, MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
-use mapless_replay::server::{ServeOptions, Security, ServerError, TlsPem, run, serve};
+use mapless_replay::server::{Security, ServeOptions, ServerError, TlsPem, run, serve};
 use mapless_replay::{RateLimiterConfig, SamplerConfig, Table, TableConfig, metrics};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, oneshot};
@@ -45,12 +42,7 @@ fn table_cfg(capacity: usize) -> TableConfig {
 /// Inserts stall once 20 rows are stored and nothing sampled (diff 20 > max_diff 11); sampling
 /// 10 rows lets the next insert through.
 fn throttled_cfg() -> TableConfig {
-    TableConfig {
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: Some(1.0), error_buffer: 10.0 },
-        max_batch_rows: 10,
-        max_sample_rows: 10,
-        ..table_cfg(1000)
-    }
+    TableConfig { rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: Some(1.0), error_buffer: 10.0 }, max_batch_rows: 10, max_sample_rows: 10, ..table_cfg(1000) }
 }
 
 /// Row `i` of the test data: every column derived from `value`, so a sampled row can be
@@ -65,18 +57,8 @@ fn batch_v(actor: &str, seq: u64, first: f32, rows: usize, policy_version: u64) 
     for i in 0..rows {
         let v = first + i as f32;
         let (obs, action, next_obs) = row_of(v);
-        b.push(Transition {
-            obs: &obs,
-            action: &action,
-            reward: v,
-            next_obs: &next_obs,
-            terminal: i % 5 == 4,
-            truncated: false,
-            episode_id: first as u64,
-            step: i as u32,
-            policy_version,
-        })
-        .expect("valid row");
+        b.push(Transition { obs: &obs, action: &action, reward: v, next_obs: &next_obs, terminal: i % 5 == 4, truncated: false, episode_id: first as u64, step: i as u32, policy_version })
+            .expect("valid row");
     }
     b.finish(actor, seq)
 }
@@ -121,11 +103,7 @@ impl Harness {
 }
 
 async fn connect(addr: SocketAddr) -> ReplayServiceClient<Channel> {
-    ReplayServiceClient::connect(format!("http://{addr}"))
-        .await
-        .expect("connect")
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(MAX_MESSAGE_BYTES)
+    ReplayServiceClient::connect(format!("http://{addr}")).await.expect("connect").max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES)
 }
 
 async fn within<T>(what: &str, f: impl Future<Output = T>) -> T {
@@ -579,10 +557,7 @@ async fn client_dropping_a_blocked_stream_does_not_wedge_the_server_or_its_actor
 
     // A Sample stream abandoned while blocked releases its producer too: it draws nothing later.
     let samples_before = h.table.info().samples_total;
-    let mut blocked = within("sample", client.sample(SampleRequest { batch_size: 10, timeout_ms: 0, max_batches: 0, ..sample_request(10) }))
-        .await
-        .expect("stream opens")
-        .into_inner();
+    let mut blocked = within("sample", client.sample(SampleRequest { batch_size: 10, timeout_ms: 0, max_batches: 0, ..sample_request(10) })).await.expect("stream opens").into_inner();
     // With 30 rows in and 10 out the limiter allows two more minibatches of 10; drain them,
     // after which the producer is blocked.
     let mut drawn = 0;
@@ -650,16 +625,9 @@ async fn update_priorities_sets_known_keys_and_counts_evicted_ones() {
     let known = keys.len() as u32;
     keys.push(1_000_000);
     let priorities = vec![2.0; keys.len()];
-    let r = client
-        .update_priorities(PriorityUpdate { protocol_version: V1, table: "transitions".into(), keys, priorities })
-        .await
-        .expect("update")
-        .into_inner();
+    let r = client.update_priorities(PriorityUpdate { protocol_version: V1, table: "transitions".into(), keys, priorities }).await.expect("update").into_inner();
     assert_eq!((r.updated, r.unknown_keys), (known, 1));
-    let status = client
-        .update_priorities(PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![1], priorities: vec![-1.0] })
-        .await
-        .expect_err("negative priority");
+    let status = client.update_priorities(PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![1], priorities: vec![-1.0] }).await.expect_err("negative priority");
     assert_eq!(status.code(), Code::InvalidArgument);
     let (batches, _) = sample_all(&mut client, SampleRequest { importance_beta: 1.0, ..sample_request(8) }).await;
     assert!(batches[0].importance_weights.iter().all(|w| *w > 0.0 && *w <= 1.0));
@@ -815,13 +783,7 @@ async fn tls_with_token_serves_a_client_that_trusts_the_certificate() {
     let security = Security { tls: Some(TlsPem { cert: cert_pem.clone().into_bytes(), key: key_pem.into_bytes() }), token: Some("tok".into()) };
     let h = Harness::start_with(table_cfg(100), ServeOptions { security, ..ServeOptions::default() }).await;
     let tls = tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(cert_pem)).domain_name("localhost");
-    let channel = Channel::from_shared(format!("https://localhost:{}", h.addr.port()))
-        .expect("uri")
-        .tls_config(tls)
-        .expect("tls config")
-        .connect()
-        .await
-        .expect("TLS handshake");
+    let channel = Channel::from_shared(format!("https://localhost:{}", h.addr.port())).expect("uri").tls_config(tls).expect("tls config").connect().await.expect("TLS handshake");
     let mut client = ReplayServiceClient::new(channel);
     let info = client.server_info(with_token(ServerInfoRequest { protocol_version: V1 }, "tok")).await.expect("info over TLS");
     assert_eq!(info.into_inner().capacity, 100);
@@ -877,8 +839,21 @@ fn wait_exit(child: &mut std::process::Child, within: Duration) -> std::process:
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn binary_serves_on_port_zero_and_exits_cleanly_on_sigterm() {
     let mut child = spawn_binary(&[
-        "--listen", "127.0.0.1:0", "--metrics", "127.0.0.1:0", "--capacity", "500", "--obs-dim", "3", "--act-dim", "2",
-        "--min-size-to-sample", "1", "--sampler", "prioritized", "--log-json",
+        "--listen",
+        "127.0.0.1:0",
+        "--metrics",
+        "127.0.0.1:0",
+        "--capacity",
+        "500",
+        "--obs-dim",
+        "3",
+        "--act-dim",
+        "2",
+        "--min-size-to-sample",
+        "1",
+        "--sampler",
+        "prioritized",
+        "--log-json",
     ]);
     let mut out = BufReader::new(child.stdout.take().expect("stdout"));
     let metrics_url = read_line_starting(&mut out, "metrics on ");

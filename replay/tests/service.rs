@@ -27,7 +27,11 @@ async fn shared_memory_and_grpc_writers_feed_one_table_in_the_service_process() 
     std::fs::create_dir_all(&dir).expect("temp dir");
     // A private iceoryx2 domain and prefix so parallel runs do not meet.
     let config = dir.join("replay.yaml");
-    std::fs::write(&config, format!("table:\n  name: svc\n  capacity: 10000\n  obs_dim: 3\n  act_dim: 2\n  rate_limiter: {{min_size_to_sample: 1}}\nshm:\n  prefix: mapless/test/svc{id}\n  domain: svc{id}_\n")).expect("config");
+    std::fs::write(
+        &config,
+        format!("table:\n  name: svc\n  capacity: 10000\n  obs_dim: 3\n  act_dim: 2\n  rate_limiter: {{min_size_to_sample: 1}}\nshm:\n  prefix: mapless/test/svc{id}\n  domain: svc{id}_\n"),
+    )
+    .expect("config");
     let mut child = Command::new(env!("CARGO_BIN_EXE_mapless-replay"))
         .args(["--config", config.to_str().expect("utf-8"), "--listen", "127.0.0.1:0", "--no-metrics"])
         .env("RUST_LOG", "warn")

@@ -83,12 +83,8 @@ fn cfg(tag: &str) -> ShmConfig {
 }
 
 fn table() -> Arc<Table> {
-    let c = TableConfig {
-        capacity: 100_000,
-        obs_dim: OBS,
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() },
-        ..TableConfig::default()
-    };
+    let c =
+        TableConfig { capacity: 100_000, obs_dim: OBS, rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() }, ..TableConfig::default() };
     Arc::new(Table::new(c, 1).unwrap())
 }
 

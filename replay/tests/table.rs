@@ -27,7 +27,8 @@ fn batch(actor: &str, seq: u64, first_reward: f32, rows: usize) -> TransitionBat
     let mut b = TransitionBatchBuilder::new(D, 2);
     for i in 0..rows {
         let r = first_reward + i as f32;
-        b.push(Transition { obs: &[r, 0.0, 0.0], action: &[0.1, -0.1], reward: r, next_obs: &[r, 1.0, 0.0], terminal: i % 7 == 6, truncated: false, episode_id: 1, step: i as u32, policy_version: 3 }).unwrap();
+        b.push(Transition { obs: &[r, 0.0, 0.0], action: &[0.1, -0.1], reward: r, next_obs: &[r, 1.0, 0.0], terminal: i % 7 == 6, truncated: false, episode_id: 1, step: i as u32, policy_version: 3 })
+            .unwrap();
     }
     b.finish(actor, seq)
 }
@@ -178,7 +179,13 @@ fn bad_input_gets_its_status_is_counted_and_leaves_the_table_intact() {
     let mut short = batch("bad", 4, 0.0, 2);
     short.next_obs.pop();
     let too_big = batch("bad", 5, 0.0, 1001);
-    for (b, code) in [(wrong_dim, tonic::Code::InvalidArgument), (nan, tonic::Code::InvalidArgument), (version, tonic::Code::FailedPrecondition), (short, tonic::Code::InvalidArgument), (too_big, tonic::Code::ResourceExhausted)] {
+    for (b, code) in [
+        (wrong_dim, tonic::Code::InvalidArgument),
+        (nan, tonic::Code::InvalidArgument),
+        (version, tonic::Code::FailedPrecondition),
+        (short, tonic::Code::InvalidArgument),
+        (too_big, tonic::Code::ResourceExhausted),
+    ] {
         let e = t.insert(&b, None).unwrap_err();
         assert_eq!(e.to_status().code(), code, "{e}");
     }
@@ -214,10 +221,14 @@ fn prioritized_sampling_frequencies_match_priorities() {
     }
     // Expected shares 0.1, 0.2, 0.3, 0.4; Pearson χ² with 3 degrees of freedom must stay
     // below 16.27 (p = 0.001). Stratified sampling makes it far smaller in practice.
-    let chi2: f64 = counts.iter().enumerate().map(|(i, &c)| {
-        let e = draws as f64 * (i + 1) as f64 / 10.0;
-        (c as f64 - e).powi(2) / e
-    }).sum();
+    let chi2: f64 = counts
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| {
+            let e = draws as f64 * (i + 1) as f64 / 10.0;
+            (c as f64 - e).powi(2) / e
+        })
+        .sum();
     assert!(chi2 < 16.27, "counts {counts:?}, chi2 {chi2}");
 }
 

@@ -1,8 +1,8 @@
 //! Criterion benches behind `mapless bench sim`: one vectorised step of 64 vehicles in env2,
 //! per scan preset and ray caster; throughput in vehicle-steps.
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use mapless_sim::bench::{bench_env, random_actions, SCAN_PRESETS};
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use mapless_sim::bench::{SCAN_PRESETS, bench_env, random_actions};
 use mapless_sim::{RaycastMethod, VecStep};
 
 const VEHICLES: usize = 64;

@@ -35,17 +35,7 @@ pub struct VehicleConfig {
 
 impl Default for VehicleConfig {
     fn default() -> Self {
-        VehicleConfig {
-            wheelbase_m: 0.32,
-            lr_m: 0.16,
-            length_m: 0.55,
-            width_m: 0.30,
-            max_steer_rad: 0.40,
-            v_max_mps: 0.5,
-            omega_max_radps: 0.6,
-            dt_s: 0.1,
-            max_substep_m: 0.05,
-        }
+        VehicleConfig { wheelbase_m: 0.32, lr_m: 0.16, length_m: 0.55, width_m: 0.30, max_steer_rad: 0.40, v_max_mps: 0.5, omega_max_radps: 0.6, dt_s: 0.1, max_substep_m: 0.05 }
     }
 }
 
@@ -136,10 +126,7 @@ impl RewardConfig {
     }
     /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
     pub fn search_and_rescue() -> Self {
-        RewardConfig {
-            bands: vec![RewardBand { min_m: 2.0, max_m: 2.5, value: 2.0 }, RewardBand { min_m: f64::NEG_INFINITY, max_m: 1.0, value: -50.0 }],
-            ..Self::exploration()
-        }
+        RewardConfig { bands: vec![RewardBand { min_m: 2.0, max_m: 2.5, value: 2.0 }, RewardBand { min_m: f64::NEG_INFINITY, max_m: 1.0, value: -50.0 }], ..Self::exploration() }
     }
     /// A preset by name: `exploration` (eq. 1) or `search_and_rescue` (eq. 2).
     pub fn preset(name: &str) -> Result<Self> {
@@ -254,9 +241,7 @@ impl EnvConfig {
             (self.exploration.cell_area_m2 > 0.0, "exploration.cell_area_m2 must be > 0"),
             (self.exploration.ring_width_m > 0.0, "exploration.ring_width_m must be > 0"),
         ];
-        let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m]
-            .iter()
-            .all(|x| x.is_finite());
+        let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());
         if !all_finite {
             return Err(SimError::InvalidConfig("every vehicle and sensor value must be finite".into()));
         }

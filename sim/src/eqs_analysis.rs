@@ -186,8 +186,20 @@ fn world_box(world: &str) -> crate::error::Result<Aabb> {
 /// Distance from (x, y) along heading ψ to the box's edge.
 fn ray_to_edge(b: &Aabb, x: f64, y: f64, psi: f64) -> f64 {
     let (s, c) = psi.sin_cos();
-    let tx = if c > 1e-12 { (b.max_x - x) / c } else if c < -1e-12 { (b.min_x - x) / c } else { f64::INFINITY };
-    let ty = if s > 1e-12 { (b.max_y - y) / s } else if s < -1e-12 { (b.min_y - y) / s } else { f64::INFINITY };
+    let tx = if c > 1e-12 {
+        (b.max_x - x) / c
+    } else if c < -1e-12 {
+        (b.min_x - x) / c
+    } else {
+        f64::INFINITY
+    };
+    let ty = if s > 1e-12 {
+        (b.max_y - y) / s
+    } else if s < -1e-12 {
+        (b.min_y - y) / s
+    } else {
+        f64::INFINITY
+    };
     tx.min(ty).max(0.0)
 }
 
@@ -294,7 +306,15 @@ pub fn analyze(readings: &[ExplorationConfig], n: usize, seed: u64, mut progress
                 .zip(per_row)
                 .map(|(row, sorted)| {
                     let p = percentile_of(sorted, row.eqs);
-                    RowFit { label: row.label.clone(), paper_eqs: row.eqs, percentile: p, p5: quantile(sorted, 0.05), median: quantile(sorted, 0.5), p95: quantile(sorted, 0.95), fits: (2.5..=97.5).contains(&p) }
+                    RowFit {
+                        label: row.label.clone(),
+                        paper_eqs: row.eqs,
+                        percentile: p,
+                        p5: quantile(sorted, 0.05),
+                        median: quantile(sorted, 0.5),
+                        p95: quantile(sorted, 0.95),
+                        fits: (2.5..=97.5).contains(&p),
+                    }
                 })
                 .collect();
             let rows_fitting = rows.iter().filter(|r| r.fits).count();

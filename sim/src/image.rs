@@ -98,18 +98,10 @@ fn read_pgm(bytes: &[u8]) -> Result<GrayImage, String> {
         if raster.len() < n * bpp {
             return Err(format!("PGM raster truncated: {w}x{h} needs {} bytes, file has {}", n * bpp, raster.len()));
         }
-        if bpp == 1 {
-            raster[..n].iter().map(|&v| scale(v as usize)).collect()
-        } else {
-            raster[..2 * n].chunks_exact(2).map(|p| scale(u16::from_be_bytes([p[0], p[1]]) as usize)).collect()
-        }
+        if bpp == 1 { raster[..n].iter().map(|&v| scale(v as usize)).collect() } else { raster[..2 * n].chunks_exact(2).map(|p| scale(u16::from_be_bytes([p[0], p[1]]) as usize)).collect() }
     } else {
         let text = std::str::from_utf8(&bytes[pos..]).map_err(|_| "P2 raster is not ASCII")?;
-        let vals: Vec<u8> = text
-            .split_ascii_whitespace()
-            .take(n)
-            .map(|t| t.parse::<usize>().map(scale).map_err(|_| format!("P2 raster value `{t}` is not a number")))
-            .collect::<Result<_, _>>()?;
+        let vals: Vec<u8> = text.split_ascii_whitespace().take(n).map(|t| t.parse::<usize>().map(scale).map_err(|_| format!("P2 raster value `{t}` is not a number"))).collect::<Result<_, _>>()?;
         if vals.len() < n {
             return Err(format!("PGM raster truncated: {w}x{h} needs {n} values, file has {}", vals.len()));
         }

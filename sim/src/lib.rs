@@ -13,8 +13,8 @@
 //! is a config field documented with its source (`config`).
 
 pub mod baseline;
-pub mod bounds;
 pub mod bench;
+pub mod bounds;
 pub mod config;
 pub mod env;
 pub mod eqs_analysis;

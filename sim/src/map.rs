@@ -196,17 +196,8 @@ impl Map {
             return Err(map_err(path, format!("bounds must be finite with min < max, got min {:?} max {:?}", f.bounds.min, f.bounds.max)));
         }
         let bounds = Aabb { min_x: x0, min_y: y0, max_x: x1, max_y: y1 };
-        let mut map = Map {
-            name: f.name,
-            description: f.description,
-            bounds,
-            obstacles: f.obstacles,
-            boundary_walls: f.boundary_walls,
-            shaded: f.shaded,
-            grid: None,
-            segments: Vec::new(),
-            circles: Vec::new(),
-        };
+        let mut map =
+            Map { name: f.name, description: f.description, bounds, obstacles: f.obstacles, boundary_walls: f.boundary_walls, shaded: f.shaded, grid: None, segments: Vec::new(), circles: Vec::new() };
         map.validate_vector(path)?;
         map.build_geometry();
         Ok(map)
@@ -369,18 +360,17 @@ impl Map {
             return Err(map_err(path, "origin yaw ≠ 0 (rotated maps) is not supported".into()));
         }
         if !(0.0..=1.0).contains(&meta.free_thresh) || !(0.0..=1.0).contains(&meta.occupied_thresh) || meta.free_thresh >= meta.occupied_thresh {
-            return Err(map_err(
-                path,
-                format!("thresholds must satisfy 0 ≤ free_thresh < occupied_thresh ≤ 1, got free {} occupied {}", meta.free_thresh, meta.occupied_thresh),
-            ));
+            return Err(map_err(path, format!("thresholds must satisfy 0 ≤ free_thresh < occupied_thresh ≤ 1, got free {} occupied {}", meta.free_thresh, meta.occupied_thresh)));
         }
         if meta.negate > 1 {
             return Err(map_err(path, format!("negate must be 0 or 1, got {}", meta.negate)));
         }
-        if let Some(mode) = &meta.mode {
-            if mode != "trinary" && mode != "scale" && mode != "raw" {
-                return Err(map_err(path, format!("unknown mode `{mode}` (trinary, scale or raw)")));
-            }
+        if let Some(mode) = &meta.mode
+            && mode != "trinary"
+            && mode != "scale"
+            && mode != "raw"
+        {
+            return Err(map_err(path, format!("unknown mode `{mode}` (trinary, scale or raw)")));
         }
         let img_path = path.parent().unwrap_or(Path::new(".")).join(&meta.image);
         let img = crate::image::read_gray(&img_path).map_err(|problem| map_err(&img_path, problem))?;

@@ -35,15 +35,48 @@ impl TrainingRow {
 /// Table III (env1, 10,000 episodes × ≤ 1000 steps) with the Table II hours.
 pub const TABLE_III: [TrainingRow; 3] = [
     TrainingRow { algorithm: "ddpg", world: "env1", episodes: 10_000, max_steps: 1000, hours: 66.0, convergence_episode: Some(170), average_return: 318.0, average_steps: 865.0, eqs: 81.0, ees: 1.82 },
-    TrainingRow { algorithm: "td3", world: "env1", episodes: 10_000, max_steps: 1000, hours: 95.3, convergence_episode: Some(960), average_return: 435.0, average_steps: 1000.0, eqs: 113.0, ees: 2.40 },
-    TrainingRow { algorithm: "sac", world: "env1", episodes: 10_000, max_steps: 1000, hours: 156.7, convergence_episode: Some(390), average_return: 320.0, average_steps: 1000.0, eqs: 91.0, ees: 2.63 },
+    TrainingRow {
+        algorithm: "td3",
+        world: "env1",
+        episodes: 10_000,
+        max_steps: 1000,
+        hours: 95.3,
+        convergence_episode: Some(960),
+        average_return: 435.0,
+        average_steps: 1000.0,
+        eqs: 113.0,
+        ees: 2.40,
+    },
+    TrainingRow {
+        algorithm: "sac",
+        world: "env1",
+        episodes: 10_000,
+        max_steps: 1000,
+        hours: 156.7,
+        convergence_episode: Some(390),
+        average_return: 320.0,
+        average_steps: 1000.0,
+        eqs: 91.0,
+        ees: 2.63,
+    },
 ];
 
 /// Table IV (env2, 20,000 episodes × ≤ 2000 steps, "not converged") with the Table II hours.
 pub const TABLE_IV: [TrainingRow; 3] = [
     TrainingRow { algorithm: "ddpg", world: "env2", episodes: 20_000, max_steps: 2000, hours: 84.8, convergence_episode: None, average_return: 125.0, average_steps: 530.0, eqs: 60.0, ees: 1.92 },
     TrainingRow { algorithm: "td3", world: "env2", episodes: 20_000, max_steps: 2000, hours: 128.1, convergence_episode: None, average_return: 230.0, average_steps: 715.0, eqs: 67.0, ees: 1.97 },
-    TrainingRow { algorithm: "sac", world: "env2", episodes: 20_000, max_steps: 2000, hours: 203.9, convergence_episode: Some(10_620), average_return: 210.0, average_steps: 1050.0, eqs: 110.0, ees: 2.24 },
+    TrainingRow {
+        algorithm: "sac",
+        world: "env2",
+        episodes: 20_000,
+        max_steps: 2000,
+        hours: 203.9,
+        convergence_episode: Some(10_620),
+        average_return: 210.0,
+        average_steps: 1050.0,
+        eqs: 110.0,
+        ees: 2.24,
+    },
 ];
 
 /// One trained agent evaluated on env3, the world it never saw (Table V).

@@ -337,7 +337,11 @@ impl Chart {
         for pt in pts {
             match pt {
                 Some((x, y)) if x.is_finite() && y.is_finite() => {
-                    if pen_down { pb.line_to(x, y) } else { pb.move_to(x, y) }
+                    if pen_down {
+                        pb.line_to(x, y)
+                    } else {
+                        pb.move_to(x, y)
+                    }
                     pen_down = true;
                 }
                 _ => pen_down = false,
@@ -469,8 +473,7 @@ impl Chart {
     /// Legend right-aligned on the panel's title line.
     fn legend(&mut self, area: &PlotArea, window: usize, goal: bool) {
         let avg_label = format!("avg of {window}");
-        let mut items: Vec<(Paint<'static>, f32, Option<StrokeDash>, String)> =
-            vec![(paint(RAW_RGB, 200), 1.5, None, "episode".into()), (paint(AVERAGE_RGB, 255), 2.5, None, avg_label)];
+        let mut items: Vec<(Paint<'static>, f32, Option<StrokeDash>, String)> = vec![(paint(RAW_RGB, 200), 1.5, None, "episode".into()), (paint(AVERAGE_RGB, 255), 2.5, None, avg_label)];
         if goal {
             items.push((paint(GOAL_RGB, 255), 1.5, StrokeDash::new(vec![6.0, 4.0], 0.0), "goal".into()));
         }

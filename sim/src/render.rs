@@ -76,10 +76,11 @@ impl Canvas {
             for px in x0.floor() as usize..(x1.ceil() as usize) {
                 let wx = map.bounds.min_x + (px as f64 + 0.5 - x0 as f64) / ppm;
                 let wy = map.bounds.max_y - (py as f64 + 0.5 - y0 as f64) / ppm;
-                if map.bounds.contains(wx, wy) && !g.is_free(wx, wy) {
-                    if let Some(p) = pixels.get_mut(py * w + px) {
-                        *p = dark;
-                    }
+                if map.bounds.contains(wx, wy)
+                    && !g.is_free(wx, wy)
+                    && let Some(p) = pixels.get_mut(py * w + px)
+                {
+                    *p = dark;
                 }
             }
         }
@@ -206,7 +207,8 @@ impl Canvas {
             // Label each ring inside its band, on the diagonal towards the map's centre.
             let label_r = (n as f64 - 0.5) * ring_width_m;
             let (mx, my) = ((b.min_x + b.max_x) / 2.0 - start[0], (b.min_y + b.max_y) / 2.0 - start[1]);
-            let (ux, uy) = (if mx >= 0.0 { 0.7071 } else { -0.7071 }, if my >= 0.0 { 0.7071 } else { -0.7071 });
+            let d = std::f64::consts::FRAC_1_SQRT_2;
+            let (ux, uy) = (if mx >= 0.0 { d } else { -d }, if my >= 0.0 { d } else { -d });
             let (wx, wy) = (start[0] + label_r * ux, start[1] + label_r * uy);
             if b.contains(wx, wy) {
                 let (lx, ly) = self.px(wx, wy);

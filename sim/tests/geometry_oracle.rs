@@ -2,8 +2,8 @@
 //! walk, fan sweep and brute force must agree on every ray; grid and brute-force footprint tests
 //! must agree with parry's intersection test. The oracle runs in f64.
 
-use mapless_sim::scene::{Footprint, Scene};
 use mapless_sim::Map;
+use mapless_sim::scene::{Footprint, Scene};
 use nalgebra::{Isometry2, Point2, Vector2};
 use parry2d_f64::query::{self, Ray, RayCast};
 use parry2d_f64::shape::{Ball, Cuboid, Segment};
@@ -43,8 +43,7 @@ impl Oracle {
         let car = Cuboid::new(Vector2::new(fp.half_length_m, fp.half_width_m));
         let iso = Isometry2::new(Vector2::new(x, y), heading);
         let id = Isometry2::identity();
-        self.segs.iter().any(|s| query::intersection_test(&iso, &car, &id, s).unwrap())
-            || self.balls.iter().any(|(bi, b)| query::intersection_test(&iso, &car, bi, b).unwrap())
+        self.segs.iter().any(|s| query::intersection_test(&iso, &car, &id, s).unwrap()) || self.balls.iter().any(|(bi, b)| query::intersection_test(&iso, &car, bi, b).unwrap())
     }
 }
 
@@ -71,7 +70,7 @@ fn grid_walk_fan_sweep_and_parry_agree_on_every_ray() {
         for _ in 0..60 {
             let (x, y) = free_point(&map, &mut rng);
             let (ox, oy) = (x as f32, y as f32);
-            let a0: f32 = rng.random_range(-3.14..3.14);
+            let a0: f32 = rng.random_range(-std::f32::consts::PI..std::f32::consts::PI);
             let dx: Vec<f32> = (0..n).map(|k| (a0 + k as f32 * step).cos()).collect();
             let dy: Vec<f32> = (0..n).map(|k| (a0 + k as f32 * step).sin()).collect();
             scene.cast_fan(ox, oy, a0, step, &dx, &dy, 12.0, &mut fan);
@@ -101,7 +100,7 @@ fn footprint_collision_agrees_with_parry() {
         for _ in 0..4000 {
             let b = map.bounds;
             let (x, y) = (rng.random_range(b.min_x..b.max_x), rng.random_range(b.min_y..b.max_y));
-            let h: f64 = rng.random_range(-3.14..3.14);
+            let h: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
             let fast = scene.footprint_collides(x, y, h, &fp);
             let brute = scene.footprint_collides_brute(x, y, h, &fp);
             let truth = oracle.collides(x, y, h, &fp);
@@ -143,7 +142,7 @@ fn both_ray_casters_give_the_same_scan_for_every_field_of_view() {
             let (mut a, mut b) = (vec![0.0f32; beams], vec![0.0f32; beams]);
             for _ in 0..25 {
                 let (x, y) = free_point(&map, &mut rng);
-                let pose = Pose { x_m: x, y_m: y, heading_rad: rng.random_range(-3.14..3.14) };
+                let pose = Pose { x_m: x, y_m: y, heading_rad: rng.random_range(-std::f64::consts::PI..std::f64::consts::PI) };
                 per_beam.scan_exact(&scene, &pose, &mut a);
                 fan.scan_exact(&scene, &pose, &mut b);
                 for k in 0..beams {

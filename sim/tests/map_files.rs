@@ -143,7 +143,9 @@ fn corrupt_ros_maps_get_errors_naming_file_and_problem() {
     let good_yaml = ROS_YAML.replace("IMAGE", "i.pgm");
     let mut pgm = b"P5\n10 8\n255\n".to_vec();
     pgm.extend_from_slice(&small_image());
-    let cases: Vec<(&str, Vec<(&str, Vec<u8>)>, &str, &str)> = vec![
+    // (case, files written, the file the error must name, what it must say)
+    type Case<'a> = (&'a str, Vec<(&'a str, Vec<u8>)>, &'a str, &'a str);
+    let cases: Vec<Case> = vec![
         ("missing-image", vec![("m.yaml", good_yaml.clone().into_bytes())], "i.pgm", "cannot read image"),
         ("truncated", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", pgm[..40].to_vec())], "i.pgm", "truncated"),
         ("header", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", b"P5\nten 8\n255\n".to_vec())], "i.pgm", "corrupt PGM header"),
@@ -153,7 +155,19 @@ fn corrupt_ros_maps_get_errors_naming_file_and_problem() {
         ("thresholds", vec![("m.yaml", good_yaml.replace("free_thresh: 0.196", "free_thresh: 0.9").into_bytes()), ("i.pgm", pgm.clone())], "m.yaml", "free_thresh < occupied_thresh"),
         ("yaw", vec![("m.yaml", good_yaml.replace("0.0]", "0.3]").into_bytes()), ("i.pgm", pgm.clone())], "m.yaml", "yaw"),
         ("no-resolution", vec![("m.yaml", b"image: i.pgm\norigin: [0, 0, 0]\noccupied_thresh: 0.65\nfree_thresh: 0.2\n".to_vec()), ("i.pgm", pgm.clone())], "m.yaml", "resolution"),
-        ("all-blocked", vec![("m.yaml", good_yaml.clone().into_bytes()), ("i.pgm", { let mut p = b"P5\n10 8\n255\n".to_vec(); p.extend(vec![0u8; 80]); p })], "m.yaml", "no free cell"),
+        (
+            "all-blocked",
+            vec![
+                ("m.yaml", good_yaml.clone().into_bytes()),
+                ("i.pgm", {
+                    let mut p = b"P5\n10 8\n255\n".to_vec();
+                    p.extend(vec![0u8; 80]);
+                    p
+                }),
+            ],
+            "m.yaml",
+            "no free cell",
+        ),
     ];
     for (case, files, file, problem) in cases {
         let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (*n, b.as_slice())).collect();

@@ -30,14 +30,11 @@
 
 use tch::Tensor;
 
-use super::{
-    Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite,
-    metric,
-};
 use super::fused;
+use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite, metric};
 use crate::LearnerError;
-use crate::cpu::{Body, host_slice};
 use crate::batch::Minibatch;
+use crate::cpu::{Body, host_slice};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -59,20 +56,10 @@ impl Ddpg {
     pub(crate) fn new(mut c: Common) -> Result<Self, LearnerError> {
         let (o, a, h) = (c.obs_dim as i64, c.act_dim as i64, c.hidden());
         let actor = ParamSet::new(mlp_specs("actor", o, h, a, &mut c.init_rng), c.device)?;
-        let critic = ParamSet::new(
-            stacked_mlp_specs("critic", 1, o + a, h, 1, &mut c.init_rng),
-            c.device,
-        )?;
+        let critic = ParamSet::new(stacked_mlp_specs("critic", 1, o + a, h, 1, &mut c.init_rng), c.device)?;
         let target_actor = actor.duplicate_as("actor", "target_actor");
         let target_critic = critic.duplicate_as("critic", "target_critic");
-        Ok(Self {
-            actor: Trained::new(actor, c.cfg.actor_lr, &c),
-            critic: Trained::new(critic, c.cfg.critic_lr, &c),
-            target_actor,
-            target_critic,
-            host: fused::Work::default(),
-            c,
-        })
+        Ok(Self { actor: Trained::new(actor, c.cfg.actor_lr, &c), critic: Trained::new(critic, c.cfg.critic_lr, &c), target_actor, target_critic, host: fused::Work::default(), c })
     }
 
     /// yᵢ = Rᵢ + γ (1 − terminalᵢ) Q_t(sᵢ₊₁, tanh π_t(sᵢ₊₁)) — eq. 2 with the terminal mask.
@@ -80,41 +67,25 @@ impl Ddpg {
     pub fn td_target(&self, b: &Minibatch) -> Tensor {
         let _guard = tch::no_grad_guard();
         let next_action = mlp_forward(self.target_actor.params(), &b.next_obs).tanh();
-        let q_next = critics(
-            self.target_critic.params(),
-            &b.next_obs,
-            &next_action,
-            self.c.cfg.fused_critics,
-        )
-        .get(0);
+        let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, self.c.cfg.fused_critics).get(0);
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * q_next * self.c.cfg.gamma
     }
 
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
-        if self.c.cfg.fused_update && self.c.device == tch::Device::Cpu {
-            if let Some(stats) = self.update_host(b)? {
-                return Ok(stats);
-            }
+        if self.c.cfg.fused_update
+            && self.c.device == tch::Device::Cpu
+            && let Some(stats) = self.update_host(b)?
+        {
+            return Ok(stats);
         }
         let y = self.td_target(b);
-        let CriticStep {
-            loss,
-            q_mean,
-            target_mean,
-            grad_norm,
-            td_errors,
-        } = critic_step(&mut self.critic, b, &y, &self.c)?;
+        let CriticStep { loss, q_mean, target_mean, grad_norm, td_errors } = critic_step(&mut self.critic, b, &y, &self.c)?;
 
         // Eqs. 3–5: descend −mean Q(s, π(s)) in θ only (the critic through its frozen views:
         // ∂Q/∂a flows, no critic weight gradient is computed).
         let action = mlp_forward(self.actor.net.params(), &b.obs).tanh();
-        let q = critics(
-            self.critic.net.frozen(),
-            &b.obs,
-            &action,
-            self.c.cfg.fused_critics,
-        );
+        let q = critics(self.critic.net.frozen(), &b.obs, &action, self.c.cfg.fused_critics);
         let actor_loss = -q.mean(None);
         let actor_loss_value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
         let actor_norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;
@@ -124,12 +95,7 @@ impl Ddpg {
         self.target_critic.soft_update_from(&self.critic.net, tau);
         self.c.updates += 1;
 
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, loss),
-            (metric::ACTOR_LOSS, actor_loss_value),
-            (metric::Q_MEAN, q_mean),
-            (metric::TARGET_MEAN, target_mean),
-        ];
+        let mut scalars = vec![(metric::CRITIC_LOSS, loss), (metric::ACTOR_LOSS, actor_loss_value), (metric::Q_MEAN, q_mean), (metric::TARGET_MEAN, target_mean)];
         scalars.extend(grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
         scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
         Ok(UpdateStats { scalars, td_errors })
@@ -144,21 +110,11 @@ impl Ddpg {
     }
 
     pub(crate) fn nets(&self) -> Vec<&ParamSet> {
-        vec![
-            &self.actor.net,
-            &self.critic.net,
-            &self.target_actor,
-            &self.target_critic,
-        ]
+        vec![&self.actor.net, &self.critic.net, &self.target_actor, &self.target_critic]
     }
 
     pub(crate) fn nets_mut(&mut self) -> Vec<&mut ParamSet> {
-        vec![
-            &mut self.actor.net,
-            &mut self.critic.net,
-            &mut self.target_actor,
-            &mut self.target_critic,
-        ]
+        vec![&mut self.actor.net, &mut self.critic.net, &mut self.target_actor, &mut self.target_critic]
     }
 
     pub(crate) fn opts(&self) -> Vec<(&'static str, &Adam)> {
@@ -166,10 +122,7 @@ impl Ddpg {
     }
 
     pub(crate) fn opts_mut(&mut self) -> Vec<(&'static str, &mut Adam)> {
-        vec![
-            ("actor", &mut self.actor.opt),
-            ("critic", &mut self.critic.opt),
-        ]
+        vec![("actor", &mut self.actor.opt), ("critic", &mut self.critic.opt)]
     }
 }
 
@@ -200,19 +153,13 @@ impl Ddpg {
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
 
         // Eqs. 3–5: descend −mean Q(s, tanh π(s)) in θ.
-        let (actor_loss, actor_norm) =
-            w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
+        let (actor_loss, actor_norm) = w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
 
         let tau = self.c.cfg.tau;
         fused::soft_update(&mut self.target_actor, &self.actor.net, tau, &w.lanes);
         fused::soft_update(&mut self.target_critic, &self.critic.net, tau, &w.lanes);
         self.c.updates += 1;
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, critic.loss),
-            (metric::ACTOR_LOSS, actor_loss),
-            (metric::Q_MEAN, critic.q_mean),
-            (metric::TARGET_MEAN, critic.target_mean),
-        ];
+        let mut scalars = vec![(metric::CRITIC_LOSS, critic.loss), (metric::ACTOR_LOSS, actor_loss), (metric::Q_MEAN, critic.q_mean), (metric::TARGET_MEAN, critic.target_mean)];
         scalars.extend(critic.grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
         scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
         Ok(Some(UpdateStats { scalars, td_errors: critic.td_errors }))

@@ -158,10 +158,7 @@ impl Work {
     /// min_k Q_k for row `i` of the last [`Work::critics_forward`]; NaN if any is NaN, as
     /// libtorch's `amin` (so a diverged critic fails the finite-loss check at once).
     pub fn min_q(&self, i: usize) -> f32 {
-        self.critics
-            .iter()
-            .map(|c| c.y[i])
-            .fold(f32::INFINITY, |m, v| if m.is_nan() || v.is_nan() { f32::NAN } else { m.min(v) })
+        self.critics.iter().map(|c| c.y[i]).fold(f32::INFINITY, |m, v| if m.is_nan() || v.is_nan() { f32::NAN } else { m.min(v) })
     }
 
     /// y = r + γ(1 − terminal)·v, v per row from `value(row)` (eqs. 2, 7, 9).
@@ -176,15 +173,7 @@ impl Work {
     /// Eqs. 1 / 6 with importance weights: L = Σ_k (1/M) Σᵢ wᵢ (yᵢ − Q_k(sᵢ, aᵢ))², then one
     /// clipped Adam step of the critics. `self.y` holds the targets. Fails, before stepping,
     /// on a non-finite loss.
-    pub fn critic_step(
-        &mut self,
-        bodies: &[Body],
-        critic: &mut Trained,
-        b: &Batch<'_>,
-        act: usize,
-        clip: Option<f64>,
-        update: u64,
-    ) -> Result<CriticStep, LearnerError> {
+    pub fn critic_step(&mut self, bodies: &[Body], critic: &mut Trained, b: &Batch<'_>, act: usize, clip: Option<f64>, update: u64) -> Result<CriticStep, LearnerError> {
         let rows = b.rows;
         let k = bodies.len();
         let Trained { net, opt, .. } = critic;
@@ -217,13 +206,7 @@ impl Work {
         }
         let grad_norm = clip.map(|c| clip_grad_norm(&mut self.critic_grad, c, &self.lanes));
         opt.step_host(p, &self.critic_grad, &self.lanes);
-        Ok(CriticStep {
-            loss,
-            q_mean: q_sum / (k * rows) as f64,
-            target_mean: self.y.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64,
-            grad_norm,
-            td_errors,
-        })
+        Ok(CriticStep { loss, q_mean: q_sum / (k * rows) as f64, target_mean: self.y.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64, grad_norm, td_errors })
     }
 
     /// For the critics' last forward on `[s | a]` (parameters `p`), ∂(−(1/M) Σᵢ min_k Q_k)/∂a
@@ -249,10 +232,7 @@ impl Work {
         let (critics, dq) = (&self.critics, &self.dq);
         match (bodies, &mut self.min_rows[..]) {
             ([b0, b1], [m0, m1]) => {
-                self.lanes.join(
-                    || m0.backward(b0, p, &critics[0], &dq[0], obs, act),
-                    || m1.backward(b1, p, &critics[1], &dq[1], obs, act),
-                );
+                self.lanes.join(|| m0.backward(b0, p, &critics[0], &dq[0], obs, act), || m1.backward(b1, p, &critics[1], &dq[1], obs, act));
             }
             _ => {
                 for (j, (body, m)) in bodies.iter().zip(self.min_rows.iter_mut()).enumerate() {

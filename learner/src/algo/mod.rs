@@ -106,15 +106,14 @@ pub struct UpdateStats {
 impl UpdateStats {
     /// The scalar called `name`, if this update reported it.
     pub fn get(&self, name: &str) -> Option<f64> {
-        self.scalars
-            .iter()
-            .find(|(n, _)| *n == name)
-            .map(|(_, v)| *v)
+        self.scalars.iter().find(|(n, _)| *n == name).map(|(_, v)| *v)
     }
 }
 
-/// One of the three algorithms. Build it with [`Agent::new`].
+/// One of the three algorithms. Build it with [`Agent::new`]. (One per learner process: the
+/// variants' sizes do not matter.)
 #[derive(Debug)]
+#[allow(clippy::large_enum_variant)]
 pub enum Agent {
     /// [`Ddpg`].
     Ddpg(Ddpg),
@@ -140,10 +139,7 @@ impl Agent {
     pub fn new(cfg: &LearnerConfig, obs_dim: usize, act_dim: usize) -> Result<Self, LearnerError> {
         cfg.validate()?;
         if obs_dim == 0 || act_dim == 0 {
-            return Err(LearnerError::InvalidConfig {
-                field: "obs_dim/act_dim",
-                reason: format!("are {obs_dim}/{act_dim}; both must be ≥ 1"),
-            });
+            return Err(LearnerError::InvalidConfig { field: "obs_dim/act_dim", reason: format!("are {obs_dim}/{act_dim}; both must be ≥ 1") });
         }
         crate::malloc::retain_freed_memory();
         let device = crate::Device::parse(&cfg.device)?.to_tch();
@@ -161,13 +157,7 @@ impl Agent {
     pub fn update(&mut self, batch: &Minibatch) -> Result<UpdateStats, LearnerError> {
         let c = self.common();
         if batch.obs_dim() != c.obs_dim || batch.act_dim() != c.act_dim {
-            return Err(LearnerError::InvalidBatch(format!(
-                "batch has obs_dim {} act_dim {}, this agent learns {}/{}",
-                batch.obs_dim(),
-                batch.act_dim(),
-                c.obs_dim,
-                c.act_dim
-            )));
+            return Err(LearnerError::InvalidBatch(format!("batch has obs_dim {} act_dim {}, this agent learns {}/{}", batch.obs_dim(), batch.act_dim(), c.obs_dim, c.act_dim)));
         }
         each!(self, a => a.update(batch))
     }
@@ -180,13 +170,9 @@ impl Agent {
         let d = self.common().obs_dim as i64;
         let size = obs.size();
         if size.len() != 2 || size[1] != d || size[0] < 1 {
-            return Err(LearnerError::InvalidBatch(format!(
-                "observations of shape {size:?}, expected [N, {d}]"
-            )));
+            return Err(LearnerError::InvalidBatch(format!("observations of shape {size:?}, expected [N, {d}]")));
         }
-        let obs = obs
-            .to_kind(tch::Kind::Float)
-            .to_device(self.common().device);
+        let obs = obs.to_kind(tch::Kind::Float).to_device(self.common().device);
         let _guard = tch::no_grad_guard();
         each!(self, a => a.act(&obs, explore))
     }
@@ -195,17 +181,11 @@ impl Agent {
     /// N × act_dim values. Non-finite observations are an error.
     pub fn act_slice(&mut self, obs: &[f32], explore: bool) -> Result<Vec<f32>, LearnerError> {
         let d = self.common().obs_dim;
-        if obs.is_empty() || obs.len() % d != 0 {
-            return Err(LearnerError::InvalidBatch(format!(
-                "{} observation values are not whole rows of {d}",
-                obs.len()
-            )));
+        if obs.is_empty() || !obs.len().is_multiple_of(d) {
+            return Err(LearnerError::InvalidBatch(format!("{} observation values are not whole rows of {d}", obs.len())));
         }
         if let Some(i) = obs.iter().position(|v| !v.is_finite()) {
-            return Err(LearnerError::InvalidBatch(format!(
-                "observation value {i} is {}",
-                obs[i]
-            )));
+            return Err(LearnerError::InvalidBatch(format!("observation value {i} is {}", obs[i])));
         }
         let t = Tensor::from_slice(obs).view([(obs.len() / d) as i64, d as i64]);
         let a = self.act(&t, explore)?.to(tch::Device::Cpu);
@@ -315,10 +295,7 @@ impl Agent {
                 }
             });
             if !done {
-                return Err(LearnerError::InvalidNetwork {
-                    name: (*name).to_string(),
-                    reason: "no parameter of this agent has that name".into(),
-                });
+                return Err(LearnerError::InvalidNetwork { name: (*name).to_string(), reason: "no parameter of this agent has that name".into() });
             }
         }
         Ok(())
@@ -333,22 +310,13 @@ impl Agent {
                 optim_steps.insert(name.to_string(), opt.steps());
             }
         });
-        AgentMeta {
-            updates: c.updates,
-            optim_steps,
-            noise_rng: c.noise.rng.clone(),
-            explore: c.explore.clone(),
-        }
+        AgentMeta { updates: c.updates, optim_steps, noise_rng: c.noise.rng.clone(), explore: c.explore.clone() }
     }
 
     /// Restores what [`Agent::state_tensors`] and [`Agent::state_meta`] produced. Every name
     /// must be present with this agent's shape and no other name may appear; the error says
     /// which. On error the agent may be partly overwritten: discard it.
-    pub(crate) fn restore_state(
-        &mut self,
-        tensors: &HashMap<String, Tensor>,
-        meta: AgentMeta,
-    ) -> Result<(), String> {
+    pub(crate) fn restore_state(&mut self, tensors: &HashMap<String, Tensor>, meta: AgentMeta) -> Result<(), String> {
         let device = self.device();
         let get = |name: &str| tensors.get(name).map(|t| t.to_device(device));
         let mut expected = 0usize;
@@ -379,10 +347,7 @@ impl Agent {
             }
         });
         if tensors.len() != expected {
-            return Err(format!(
-                "{} tensors stored, this agent has {expected}",
-                tensors.len()
-            ));
+            return Err(format!("{} tensors stored, this agent has {expected}", tensors.len()));
         }
         if meta.explore.cfg != self.common().explore.cfg {
             return Err("exploration noise settings differ from the stored ones".into());
@@ -441,10 +406,7 @@ const STREAM_EXPLORE: u64 = 0x3c39;
 
 fn stream(seed: u64, id: u64) -> Pcg64 {
     // Pcg64::new(state, stream) gives distinct sequences for distinct stream ids.
-    Pcg64::new(
-        u128::from(seed) << 64 | u128::from(id),
-        u128::from(id) << 1 | 1,
-    )
+    Pcg64::new(u128::from(seed) << 64 | u128::from(id), u128::from(id) << 1 | 1)
 }
 
 impl Common {
@@ -456,15 +418,8 @@ impl Common {
         };
         Self {
             init_rng: stream(cfg.seed, STREAM_INIT),
-            noise: NoiseSource {
-                rng: stream(cfg.seed, STREAM_NOISE),
-                buf: Vec::new(),
-            },
-            explore: Explorer {
-                cfg: exploration,
-                rng: stream(cfg.seed, STREAM_EXPLORE),
-                ou: Vec::new(),
-            },
+            noise: NoiseSource { rng: stream(cfg.seed, STREAM_NOISE), buf: Vec::new() },
+            explore: Explorer { cfg: exploration, rng: stream(cfg.seed, STREAM_EXPLORE), ou: Vec::new() },
             cfg,
             obs_dim,
             act_dim,
@@ -491,9 +446,7 @@ impl NoiseSource {
     pub fn normal(&mut self, rows: usize, cols: usize, device: tch::Device) -> Tensor {
         let mut buf = std::mem::take(&mut self.buf);
         self.fill(&mut buf, rows * cols);
-        let t = Tensor::from_slice(&buf)
-            .view([rows as i64, cols as i64])
-            .to_device(device);
+        let t = Tensor::from_slice(&buf).view([rows as i64, cols as i64]).to_device(device);
         self.buf = buf;
         t
     }
@@ -532,12 +485,7 @@ impl Explorer {
                     *a = (f64::from(*a) + sigma * z).clamp(-1.0, 1.0) as f32;
                 }
             }
-            ExplorationNoise::OrnsteinUhlenbeck {
-                theta,
-                sigma,
-                mean,
-                dt,
-            } => {
+            ExplorationNoise::OrnsteinUhlenbeck { theta, sigma, mean, dt } => {
                 if self.ou.len() != actions.len() {
                     self.ou = vec![mean as f32; actions.len()];
                 }
@@ -582,12 +530,7 @@ impl Trained {
 
 /// Acting with a deterministic tanh actor (DDPG, TD3): a = tanh(π(s)), plus the
 /// exploration noise when exploring. Call under `no_grad`.
-pub(crate) fn deterministic_act(
-    actor: &ParamSet,
-    obs: &Tensor,
-    explore: bool,
-    c: &mut Common,
-) -> Result<Tensor, LearnerError> {
+pub(crate) fn deterministic_act(actor: &ParamSet, obs: &Tensor, explore: bool, c: &mut Common) -> Result<Tensor, LearnerError> {
     let a = mlp_forward(actor.params(), obs).tanh();
     if !explore {
         return Ok(a);
@@ -595,9 +538,7 @@ pub(crate) fn deterministic_act(
     let shape = a.size();
     let mut host = Vec::<f32>::try_from(&a.to(tch::Device::Cpu).reshape([-1]))?;
     c.explore.perturb(&mut host);
-    Ok(Tensor::from_slice(&host)
-        .view(shape.as_slice())
-        .to_device(c.device))
+    Ok(Tensor::from_slice(&host).view(shape.as_slice()).to_device(c.device))
 }
 
 /// Q-values of a stack of critics: `[K, B, 1]` for observations `[B, obs]` and actions
@@ -625,67 +566,36 @@ pub(crate) struct CriticStep {
 /// ```
 ///
 /// `y` is `[B, 1]` and carries no gradient. Checks the loss is finite before stepping.
-pub(crate) fn critic_step(
-    critic: &mut Trained,
-    b: &Minibatch,
-    y: &Tensor,
-    c: &Common,
-) -> Result<CriticStep, LearnerError> {
+pub(crate) fn critic_step(critic: &mut Trained, b: &Minibatch, y: &Tensor, c: &Common) -> Result<CriticStep, LearnerError> {
     let q = critics(critic.net.params(), &b.obs, &b.action, c.cfg.fused_critics); // [K, B, 1]
     let td = &q - y; // broadcast over K
     let loss = (td.square() * &b.weights).sum(None) / b.rows() as f64;
     let loss_value = loss.double_value(&[]);
     if !loss_value.is_finite() {
-        return Err(LearnerError::NonFiniteLoss {
-            what: metric::CRITIC_LOSS,
-            value: loss_value,
-            update: c.updates,
-        });
+        return Err(LearnerError::NonFiniteLoss { what: metric::CRITIC_LOSS, value: loss_value, update: c.updates });
     }
     let grad_norm = critic.step(&loss, c.cfg.grad_clip_norm)?;
     let _guard = tch::no_grad_guard();
     let td_rows = td.detach().abs().mean_dim(0, false, None).reshape([-1]);
     let mut td_errors = vec![0.0f32; b.rows()];
     td_rows.f_copy_data(&mut td_errors, b.rows())?;
-    Ok(CriticStep {
-        loss: loss_value,
-        q_mean: q.detach().mean(None).double_value(&[]),
-        target_mean: y.mean(None).double_value(&[]),
-        grad_norm,
-        td_errors,
-    })
+    Ok(CriticStep { loss: loss_value, q_mean: q.detach().mean(None).double_value(&[]), target_mean: y.mean(None).double_value(&[]), grad_norm, td_errors })
 }
 
 /// Fails with [`LearnerError::NonFiniteLoss`] unless `loss` is finite; returns its value.
 pub(crate) fn finite(loss: &Tensor, what: &'static str, c: &Common) -> Result<f64, LearnerError> {
     let v = loss.double_value(&[]);
-    if v.is_finite() {
-        Ok(v)
-    } else {
-        Err(LearnerError::NonFiniteLoss {
-            what,
-            value: v,
-            update: c.updates,
-        })
-    }
+    if v.is_finite() { Ok(v) } else { Err(LearnerError::NonFiniteLoss { what, value: v, update: c.updates }) }
 }
 
 /// Speed of [`Agent::update`]: how many it completes per second, on random minibatches of
 /// `cfg.batch_size` rows, after a short warm-up, for about `seconds`. `threads` is applied
 /// first (libtorch allows one inter-op setting per process). For `mapless bench learner`.
-pub fn bench_updates(
-    cfg: &LearnerConfig,
-    obs_dim: usize,
-    act_dim: usize,
-    threads: crate::TorchThreads,
-    seconds: f64,
-) -> Result<f64, LearnerError> {
+pub fn bench_updates(cfg: &LearnerConfig, obs_dim: usize, act_dim: usize, threads: crate::TorchThreads, seconds: f64) -> Result<f64, LearnerError> {
     threads.apply()?;
     let mut agent = Agent::new(cfg, obs_dim, act_dim)?;
     let mut rng = Pcg64::seed_from_u64(cfg.seed);
-    let batches = (0..8)
-        .map(|_| Minibatch::random(cfg.batch_size, obs_dim, act_dim, &mut rng, agent.device()))
-        .collect::<Result<Vec<_>, _>>()?;
+    let batches = (0..8).map(|_| Minibatch::random(cfg.batch_size, obs_dim, act_dim, &mut rng, agent.device())).collect::<Result<Vec<_>, _>>()?;
     for b in batches.iter().cycle().take(20) {
         agent.update(b)?;
     }
@@ -694,7 +604,7 @@ pub fn bench_updates(
     for b in batches.iter().cycle() {
         agent.update(b)?;
         n += 1;
-        if n % 8 == 0 && start.elapsed().as_secs_f64() >= seconds {
+        if n.is_multiple_of(8) && start.elapsed().as_secs_f64() >= seconds {
             break;
         }
     }

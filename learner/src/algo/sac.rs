@@ -82,19 +82,9 @@ impl Sac {
     pub(crate) fn new(mut c: Common) -> Result<Self, LearnerError> {
         let (o, a, h) = (c.obs_dim as i64, c.act_dim as i64, c.hidden());
         let actor = ParamSet::new(mlp_specs("actor", o, h, 2 * a, &mut c.init_rng), c.device)?;
-        let critic = ParamSet::new(
-            stacked_mlp_specs("critic", CRITICS, o + a, h, 1, &mut c.init_rng),
-            c.device,
-        )?;
+        let critic = ParamSet::new(stacked_mlp_specs("critic", CRITICS, o + a, h, 1, &mut c.init_rng), c.device)?;
         let target_critic = critic.duplicate_as("critic", "target_critic");
-        let log_alpha = ParamSet::new(
-            vec![(
-                "log_alpha".into(),
-                vec![1],
-                vec![c.cfg.sac.initial_alpha.ln() as f32],
-            )],
-            c.device,
-        )?;
+        let log_alpha = ParamSet::new(vec![("log_alpha".into(), vec![1], vec![c.cfg.sac.initial_alpha.ln() as f32])], c.device)?;
         let target_entropy = c.cfg.sac.target_entropy.unwrap_or(-(c.act_dim as f64));
         Ok(Self {
             actor: Trained::new(actor, c.cfg.actor_lr, &c),
@@ -122,10 +112,7 @@ impl Sac {
         let out = mlp_forward(self.actor.net.params(), obs);
         let a = self.c.act_dim as i64;
         let s = &self.c.cfg.sac;
-        (
-            out.narrow(1, 0, a),
-            out.narrow(1, a, a).clamp(s.log_std_min, s.log_std_max),
-        )
+        (out.narrow(1, 0, a), out.narrow(1, a, a).clamp(s.log_std_min, s.log_std_max))
     }
 
     /// a = tanh(μ + σε) and ln π(a|s) (module docs) for given standard-normal `eps`
@@ -145,23 +132,18 @@ impl Sac {
     fn td_target_with_alpha(&self, b: &Minibatch, eps: &Tensor, alpha: f64) -> Tensor {
         let _guard = tch::no_grad_guard();
         let next = self.sample_with(&b.next_obs, eps);
-        let q_next = critics(
-            self.target_critic.params(),
-            &b.next_obs,
-            &next.action,
-            self.c.cfg.fused_critics,
-        )
-        .amin(0, false);
+        let q_next = critics(self.target_critic.params(), &b.next_obs, &next.action, self.c.cfg.fused_critics).amin(0, false);
         let soft_value = q_next - next.log_prob * alpha;
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * soft_value * self.c.cfg.gamma
     }
 
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
-        if self.c.cfg.fused_update && self.c.device == tch::Device::Cpu {
-            if let Some(stats) = self.update_host(b)? {
-                return Ok(stats);
-            }
+        if self.c.cfg.fused_update
+            && self.c.device == tch::Device::Cpu
+            && let Some(stats) = self.update_host(b)?
+        {
+            return Ok(stats);
         }
         let (rows, act, device) = (b.rows(), self.c.act_dim, self.c.device);
         let eps_next = self.c.noise.normal(rows, act, device);
@@ -169,24 +151,12 @@ impl Sac {
         let alpha = self.alpha();
 
         let y = self.td_target_with_alpha(b, &eps_next, alpha);
-        let CriticStep {
-            loss,
-            q_mean,
-            target_mean,
-            grad_norm,
-            td_errors,
-        } = critic_step(&mut self.critic, b, &y, &self.c)?;
+        let CriticStep { loss, q_mean, target_mean, grad_norm, td_errors } = critic_step(&mut self.critic, b, &y, &self.c)?;
 
         // Eq. 11 with the updated critics, minimised in θ only: the critics run on their
         // frozen views, so the backward pass computes ∂Q/∂a but no critic weight gradient.
         let now = self.sample_with(&b.obs, &eps_now);
-        let q = critics(
-            self.critic.net.frozen(),
-            &b.obs,
-            &now.action,
-            self.c.cfg.fused_critics,
-        )
-        .amin(0, false);
+        let q = critics(self.critic.net.frozen(), &b.obs, &now.action, self.c.cfg.fused_critics).amin(0, false);
         let actor_loss = (&now.log_prob * alpha - q).mean(None);
         let actor_loss_value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
         let actor_norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;
@@ -199,8 +169,7 @@ impl Sac {
             self.log_alpha.opt.step(self.log_alpha.net.flat(), &grad);
         }
 
-        self.target_critic
-            .soft_update_from(&self.critic.net, self.c.cfg.tau);
+        self.target_critic.soft_update_from(&self.critic.net, self.c.cfg.tau);
         self.c.updates += 1;
 
         let mut scalars = vec![
@@ -225,12 +194,8 @@ impl Sac {
         let eps = {
             let e = &mut self.c.explore.rng;
             let n = mean.numel();
-            let v: Vec<f32> = (0..n)
-                .map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, e))
-                .collect();
-            Tensor::from_slice(&v)
-                .view(mean.size().as_slice())
-                .to_device(self.c.device)
+            let v: Vec<f32> = (0..n).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, e)).collect();
+            Tensor::from_slice(&v).view(mean.size().as_slice()).to_device(self.c.device)
         };
         Ok((mean + log_std.exp() * eps).tanh())
     }
@@ -240,37 +205,19 @@ impl Sac {
     }
 
     pub(crate) fn nets(&self) -> Vec<&ParamSet> {
-        vec![
-            &self.actor.net,
-            &self.critic.net,
-            &self.target_critic,
-            &self.log_alpha.net,
-        ]
+        vec![&self.actor.net, &self.critic.net, &self.target_critic, &self.log_alpha.net]
     }
 
     pub(crate) fn nets_mut(&mut self) -> Vec<&mut ParamSet> {
-        vec![
-            &mut self.actor.net,
-            &mut self.critic.net,
-            &mut self.target_critic,
-            &mut self.log_alpha.net,
-        ]
+        vec![&mut self.actor.net, &mut self.critic.net, &mut self.target_critic, &mut self.log_alpha.net]
     }
 
     pub(crate) fn opts(&self) -> Vec<(&'static str, &Adam)> {
-        vec![
-            ("actor", &self.actor.opt),
-            ("critic", &self.critic.opt),
-            ("alpha", &self.log_alpha.opt),
-        ]
+        vec![("actor", &self.actor.opt), ("critic", &self.critic.opt), ("alpha", &self.log_alpha.opt)]
     }
 
     pub(crate) fn opts_mut(&mut self) -> Vec<(&'static str, &mut Adam)> {
-        vec![
-            ("actor", &mut self.actor.opt),
-            ("critic", &mut self.critic.opt),
-            ("alpha", &mut self.log_alpha.opt),
-        ]
+        vec![("actor", &mut self.actor.opt), ("critic", &mut self.critic.opt), ("alpha", &mut self.log_alpha.opt)]
     }
 }
 
@@ -380,10 +327,7 @@ impl Sac {
         // in between leaves the actor as it is).
         let ap = unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters");
         let (on_next, on_now) = (&mut w.actor_next, &mut w.actor);
-        w.lanes.join(
-            || actor_body.forward(ap, b.next_obs, rows, on_next),
-            || actor_body.forward(ap, b.obs, rows, on_now),
-        );
+        w.lanes.join(|| actor_body.forward(ap, b.next_obs, rows, on_next), || actor_body.forward(ap, b.obs, rows, on_now));
 
         // 1. Targets, eq. 9: y = r + γ(1 − terminal)(min_k Q_tk(s′, ã′) − α ln π(ã′|s′)).
         head.sample(&w.actor_next.y, eps_next, rows, na, lo, hi);
@@ -423,8 +367,7 @@ impl Sac {
             }
         }
         let actor_norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
-        let (loss, q_mean, target_mean, critic_norm, td_errors) =
-            (critic.loss, critic.q_mean, critic.target_mean, critic.grad_norm, critic.td_errors);
+        let (loss, q_mean, target_mean, critic_norm, td_errors) = (critic.loss, critic.q_mean, critic.target_mean, critic.grad_norm, critic.td_errors);
 
         // 4. α, eq. 10, and the targets: as the libtorch path.
         let mean_log_prob = head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;

@@ -28,14 +28,11 @@
 
 use tch::Tensor;
 
-use super::{
-    Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite,
-    metric,
-};
 use super::fused;
+use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite, metric};
 use crate::LearnerError;
-use crate::cpu::{Body, host_slice};
 use crate::batch::Minibatch;
+use crate::cpu::{Body, host_slice};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -60,20 +57,10 @@ impl Td3 {
     pub(crate) fn new(mut c: Common) -> Result<Self, LearnerError> {
         let (o, a, h) = (c.obs_dim as i64, c.act_dim as i64, c.hidden());
         let actor = ParamSet::new(mlp_specs("actor", o, h, a, &mut c.init_rng), c.device)?;
-        let critic = ParamSet::new(
-            stacked_mlp_specs("critic", CRITICS, o + a, h, 1, &mut c.init_rng),
-            c.device,
-        )?;
+        let critic = ParamSet::new(stacked_mlp_specs("critic", CRITICS, o + a, h, 1, &mut c.init_rng), c.device)?;
         let target_actor = actor.duplicate_as("actor", "target_actor");
         let target_critic = critic.duplicate_as("critic", "target_critic");
-        Ok(Self {
-            actor: Trained::new(actor, c.cfg.actor_lr, &c),
-            critic: Trained::new(critic, c.cfg.critic_lr, &c),
-            target_actor,
-            target_critic,
-            host: fused::Work::default(),
-            c,
-        })
+        Ok(Self { actor: Trained::new(actor, c.cfg.actor_lr, &c), critic: Trained::new(critic, c.cfg.critic_lr, &c), target_actor, target_critic, host: fused::Work::default(), c })
     }
 
     /// ε of eq. 7 for `rows` transitions: N(0, σ²) clipped to ±c, `[rows, act_dim]`, drawn
@@ -88,53 +75,31 @@ impl Td3 {
     /// Rᵢ + γ(1 − terminalᵢ) min_k Q_tk(sᵢ₊₁, clip(tanh π_t(sᵢ₊₁) + εᵢ, −1, 1)). `[B, 1]`.
     pub fn td_target(&self, b: &Minibatch, eps: &Tensor) -> Tensor {
         let _guard = tch::no_grad_guard();
-        let next_action =
-            (mlp_forward(self.target_actor.params(), &b.next_obs).tanh() + eps).clamp(-1.0, 1.0);
-        let q_next = critics(
-            self.target_critic.params(),
-            &b.next_obs,
-            &next_action,
-            self.c.cfg.fused_critics,
-        )
-        .amin(0, false);
+        let next_action = (mlp_forward(self.target_actor.params(), &b.next_obs).tanh() + eps).clamp(-1.0, 1.0);
+        let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, self.c.cfg.fused_critics).amin(0, false);
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * q_next * self.c.cfg.gamma
     }
 
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
-        if self.c.cfg.fused_update && self.c.device == tch::Device::Cpu {
-            if let Some(stats) = self.update_host(b)? {
-                return Ok(stats);
-            }
+        if self.c.cfg.fused_update
+            && self.c.device == tch::Device::Cpu
+            && let Some(stats) = self.update_host(b)?
+        {
+            return Ok(stats);
         }
         let eps = self.smoothing_noise(b.rows());
         let y = self.td_target(b, &eps);
-        let CriticStep {
-            loss,
-            q_mean,
-            target_mean,
-            grad_norm,
-            td_errors,
-        } = critic_step(&mut self.critic, b, &y, &self.c)?;
+        let CriticStep { loss, q_mean, target_mean, grad_norm, td_errors } = critic_step(&mut self.critic, b, &y, &self.c)?;
         self.c.updates += 1;
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, loss),
-            (metric::Q_MEAN, q_mean),
-            (metric::TARGET_MEAN, target_mean),
-        ];
+        let mut scalars = vec![(metric::CRITIC_LOSS, loss), (metric::Q_MEAN, q_mean), (metric::TARGET_MEAN, target_mean)];
         scalars.extend(grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
 
-        if self.c.updates % self.c.cfg.td3.policy_delay == 0 {
+        if self.c.updates.is_multiple_of(self.c.cfg.td3.policy_delay) {
             // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, π(s)) in θ only (critics through their
             // frozen views: ∂Q/∂a flows, no critic weight gradient is computed).
             let action = mlp_forward(self.actor.net.params(), &b.obs).tanh();
-            let q = critics(
-                self.critic.net.frozen(),
-                &b.obs,
-                &action,
-                self.c.cfg.fused_critics,
-            )
-            .amin(0, false);
+            let q = critics(self.critic.net.frozen(), &b.obs, &action, self.c.cfg.fused_critics).amin(0, false);
             let actor_loss = -q.mean(None);
             let value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
             let norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;
@@ -156,21 +121,11 @@ impl Td3 {
     }
 
     pub(crate) fn nets(&self) -> Vec<&ParamSet> {
-        vec![
-            &self.actor.net,
-            &self.critic.net,
-            &self.target_actor,
-            &self.target_critic,
-        ]
+        vec![&self.actor.net, &self.critic.net, &self.target_actor, &self.target_critic]
     }
 
     pub(crate) fn nets_mut(&mut self) -> Vec<&mut ParamSet> {
-        vec![
-            &mut self.actor.net,
-            &mut self.critic.net,
-            &mut self.target_actor,
-            &mut self.target_critic,
-        ]
+        vec![&mut self.actor.net, &mut self.critic.net, &mut self.target_actor, &mut self.target_critic]
     }
 
     pub(crate) fn opts(&self) -> Vec<(&'static str, &Adam)> {
@@ -178,10 +133,7 @@ impl Td3 {
     }
 
     pub(crate) fn opts_mut(&mut self) -> Vec<(&'static str, &mut Adam)> {
-        vec![
-            ("actor", &mut self.actor.opt),
-            ("critic", &mut self.critic.opt),
-        ]
+        vec![("actor", &mut self.actor.opt), ("critic", &mut self.critic.opt)]
     }
 }
 
@@ -209,30 +161,19 @@ impl Td3 {
 
         // Eq. 7: y = r + γ(1 − terminal) min_k Q_tk(s′, clip(tanh π_t(s′) + clip(ε), −1, 1)).
         actor_body.forward(unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
-        let next: Vec<f32> = w
-            .actor
-            .y
-            .iter()
-            .zip(&z)
-            .map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0))
-            .collect();
+        let next: Vec<f32> = w.actor.y.iter().zip(&z).map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0)).collect();
         w.noise = z;
         let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
         w.critics_forward(&bodies, tp, b.next_obs, &next, na, rows);
         w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
         let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
         self.c.updates += 1;
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, critic.loss),
-            (metric::Q_MEAN, critic.q_mean),
-            (metric::TARGET_MEAN, critic.target_mean),
-        ];
+        let mut scalars = vec![(metric::CRITIC_LOSS, critic.loss), (metric::Q_MEAN, critic.q_mean), (metric::TARGET_MEAN, critic.target_mean)];
         scalars.extend(critic.grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
 
-        if self.c.updates % self.c.cfg.td3.policy_delay == 0 {
+        if self.c.updates.is_multiple_of(self.c.cfg.td3.policy_delay) {
             // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, tanh π(s)) in θ.
-            let (actor_loss, norm) =
-                w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
+            let (actor_loss, norm) = w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
             let tau = self.c.cfg.tau;
             fused::soft_update(&mut self.target_actor, &self.actor.net, tau, &w.lanes);
             fused::soft_update(&mut self.target_critic, &self.critic.net, tau, &w.lanes);

@@ -66,12 +66,7 @@ pub fn angle_normalize(x: f64) -> f64 {
 impl Pendulum {
     /// A pendulum whose resets draw from `seed`; call [`Pendulum::reset`] first.
     pub fn new(seed: u64) -> Self {
-        Self {
-            theta: 0.0,
-            theta_dot: 0.0,
-            steps: 0,
-            rng: Pcg64::seed_from_u64(seed),
-        }
+        Self { theta: 0.0, theta_dot: 0.0, steps: 0, rng: Pcg64::seed_from_u64(seed) }
     }
 
     /// Starts an episode: θ ~ U[−π, π), θ̇ ~ U[−1, 1) (numpy's half-open uniform).
@@ -101,33 +96,19 @@ impl Pendulum {
 
     /// [cos θ, sin θ, θ̇].
     pub fn obs(&self) -> [f32; OBS_DIM] {
-        [
-            self.theta.cos() as f32,
-            self.theta.sin() as f32,
-            self.theta_dot as f32,
-        ]
+        [self.theta.cos() as f32, self.theta.sin() as f32, self.theta_dot as f32]
     }
 
     /// One step with torque `u` in N·m (clipped to ±2). A non-finite torque counts as 0.
     pub fn step(&mut self, u: f64) -> PendulumStep {
-        let u = if u.is_finite() {
-            u.clamp(-MAX_TORQUE, MAX_TORQUE)
-        } else {
-            0.0
-        };
+        let u = if u.is_finite() { u.clamp(-MAX_TORQUE, MAX_TORQUE) } else { 0.0 };
         let (th, thdot) = (self.theta, self.theta_dot);
         let cost = angle_normalize(th).powi(2) + 0.1 * thdot * thdot + 0.001 * u * u;
-        let new_thdot = (thdot + (3.0 * G / (2.0 * L) * th.sin() + 3.0 / (M * L * L) * u) * DT)
-            .clamp(-MAX_SPEED, MAX_SPEED);
+        let new_thdot = (thdot + (3.0 * G / (2.0 * L) * th.sin() + 3.0 / (M * L * L) * u) * DT).clamp(-MAX_SPEED, MAX_SPEED);
         self.theta = th + new_thdot * DT;
         self.theta_dot = new_thdot;
         self.steps += 1;
-        PendulumStep {
-            obs: self.obs(),
-            reward: -cost as f32,
-            terminal: false,
-            truncated: self.steps >= MAX_EPISODE_STEPS,
-        }
+        PendulumStep { obs: self.obs(), reward: -cost as f32, terminal: false, truncated: self.steps >= MAX_EPISODE_STEPS }
     }
 
     /// One step with a normalised action a ∈ [−1, 1] (torque = 2a), as the agents emit.

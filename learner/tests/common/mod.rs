@@ -23,18 +23,7 @@ use serde::{Deserialize, Serialize};
 
 /// Pendulum's usual hyperparameters (rl-baselines3-zoo / CleanRL), not the paper's.
 pub fn pendulum_config(algorithm: AlgorithmKind, seed: u64) -> LearnerConfig {
-    let mut c = LearnerConfig {
-        algorithm,
-        seed,
-        hidden_width: 64,
-        gamma: 0.98,
-        actor_lr: 1e-3,
-        critic_lr: 1e-3,
-        tau: 0.005,
-        batch_size: 128,
-        grad_clip_norm: None,
-        ..LearnerConfig::default()
-    };
+    let mut c = LearnerConfig { algorithm, seed, hidden_width: 64, gamma: 0.98, actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.005, batch_size: 128, grad_clip_norm: None, ..LearnerConfig::default() };
     c.sac.alpha_lr = 1e-3;
     c.td3.exploration = ExplorationNoise::Gaussian { sigma: 0.1 };
     c.ddpg.exploration = ExplorationNoise::Gaussian { sigma: 0.1 };
@@ -50,11 +39,7 @@ pub fn table_config(capacity: usize, batch: usize) -> TableConfig {
         obs_dim: OBS_DIM,
         act_dim: ACT_DIM,
         sampler: SamplerConfig::Uniform,
-        rate_limiter: RateLimiterConfig {
-            min_size_to_sample: batch as u64,
-            samples_per_insert: None,
-            ..RateLimiterConfig::default()
-        },
+        rate_limiter: RateLimiterConfig { min_size_to_sample: batch as u64, samples_per_insert: None, ..RateLimiterConfig::default() },
         ..TableConfig::default()
     }
 }
@@ -88,15 +73,7 @@ impl Harness {
         Self {
             agent,
             table,
-            s: LoopState {
-                env,
-                rng: Pcg64::seed_from_u64(seed ^ 0x5eed),
-                obs,
-                steps: 0,
-                episode: 0,
-                episode_return: 0.0,
-                returns: Vec::new(),
-            },
+            s: LoopState { env, rng: Pcg64::seed_from_u64(seed ^ 0x5eed), obs, steps: 0, episode: 0, episode_return: 0.0, returns: Vec::new() },
             learning_starts,
             batch: cfg.batch_size,
         }
@@ -107,24 +84,14 @@ impl Harness {
     }
 
     pub fn persistent_table(cfg: &LearnerConfig, dir: &std::path::Path, seed: u64) -> Table {
-        let persistence = PersistenceConfig {
-            dir: Some(dir.to_path_buf()),
-            snapshot_interval_s: 0.0,
-            ..PersistenceConfig::default()
-        };
-        Table::open(table_config(50_000, cfg.batch_size), persistence, seed)
-            .expect("table")
-            .0
+        let persistence = PersistenceConfig { dir: Some(dir.to_path_buf()), snapshot_interval_s: 0.0, ..PersistenceConfig::default() };
+        Table::open(table_config(50_000, cfg.batch_size), persistence, seed).expect("table").0
     }
 
     /// One environment step, its insert, and (after warm-up) one update.
     pub fn step(&mut self) {
         let s = &mut self.s;
-        let action = if s.steps < self.learning_starts {
-            s.rng.random_range(-1.0f32..1.0)
-        } else {
-            self.agent.act_slice(&s.obs, true).expect("act")[0]
-        };
+        let action = if s.steps < self.learning_starts { s.rng.random_range(-1.0f32..1.0) } else { self.agent.act_slice(&s.obs, true).expect("act")[0] };
         let step_in_episode = s.env.steps();
         let out = s.env.step_normalized(action);
         let mut b = TransitionBatchBuilder::new(OBS_DIM, ACT_DIM);
@@ -140,9 +107,7 @@ impl Harness {
             policy_version: self.agent.updates(),
         })
         .expect("transition");
-        self.table
-            .insert(&b.finish("pendulum", s.steps + 1), None)
-            .expect("insert");
+        self.table.insert(&b.finish("pendulum", s.steps + 1), None).expect("insert");
         s.steps += 1;
         s.episode_return += f64::from(out.reward);
         if out.terminal || out.truncated {
@@ -164,9 +129,7 @@ impl Harness {
     /// Mean return of `episodes` deterministic episodes on fixed evaluation seeds, run in
     /// lockstep (all Pendulum episodes last 200 steps).
     pub fn evaluate(&mut self, episodes: usize) -> f64 {
-        let mut envs: Vec<Pendulum> = (0..episodes)
-            .map(|i| Pendulum::new(1_000_000 + i as u64))
-            .collect();
+        let mut envs: Vec<Pendulum> = (0..episodes).map(|i| Pendulum::new(1_000_000 + i as u64)).collect();
         let mut obs: Vec<f32> = envs.iter_mut().flat_map(|e| e.reset()).collect();
         let mut total = 0.0;
         for _ in 0..mapless_learner::envs::pendulum::MAX_EPISODE_STEPS {
@@ -184,16 +147,8 @@ impl Harness {
 
 /// Trains until the deterministic evaluation reaches `threshold` or `max_steps` pass;
 /// evaluates every `every` steps after warm-up. Returns (steps, best score, seconds, scores).
-pub fn train_until(
-    algorithm: AlgorithmKind,
-    seed: u64,
-    threshold: f64,
-    max_steps: u64,
-    every: u64,
-) -> (u64, f64, f64, Vec<(u64, f64)>) {
-    mapless_learner::TorchThreads::default()
-        .apply()
-        .expect("threads");
+pub fn train_until(algorithm: AlgorithmKind, seed: u64, threshold: f64, max_steps: u64, every: u64) -> (u64, f64, f64, Vec<(u64, f64)>) {
+    mapless_learner::TorchThreads::default().apply().expect("threads");
     let cfg = pendulum_config(algorithm, seed);
     let table = Harness::memory_table(&cfg, seed);
     let mut h = Harness::new(&cfg, table, seed, 1_000);
@@ -202,7 +157,7 @@ pub fn train_until(
     let mut best = f64::NEG_INFINITY;
     while h.s.steps < max_steps {
         h.step();
-        if h.s.steps > h.learning_starts && h.s.steps % every == 0 {
+        if h.s.steps > h.learning_starts && h.s.steps.is_multiple_of(every) {
             let score = h.evaluate(10);
             scores.push((h.s.steps, score));
             best = best.max(score);

@@ -231,10 +231,7 @@ async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -
     // Table::open restores what `persistence.dir` (--data-dir) holds; with no dir the table
     // lives in memory only. Opening replays the log, so it runs off the async runtime.
     let (table_cfg, persistence, seed) = (cfg.table.clone(), cfg.persistence.clone(), cfg.seed);
-    let (table, report) = tokio::task::spawn_blocking(move || Table::open(table_cfg, persistence, seed))
-        .await
-        .context("table open task")?
-        .context("opening the replay table")?;
+    let (table, report) = tokio::task::spawn_blocking(move || Table::open(table_cfg, persistence, seed)).await.context("table open task")?.context("opening the replay table")?;
     if cfg.persistence.dir.is_some() {
         info!(rows = report.rows, records = report.records_replayed, snapshot = ?report.snapshot, fault = ?report.fault, elapsed = ?report.elapsed, "table restored");
         for w in &report.warnings {
