@@ -127,9 +127,15 @@ fn write_policy(driver: &Driver, path: &Option<PathBuf>) {
     }
 }
 
-/// Writes `version` to `path` atomically.
+/// Writes `version` to `path` whole or not at all (a temporary file beside it, renamed over it).
+/// Not fsynced: it changes about every second, on the update loop's thread, and is only a hint
+/// for a resume (the checkpoint holds the version that counts).
 fn write_version_file(path: &Path, version: u64) -> Result<()> {
-    Ok(mapless_learner::weights::write_file_atomically(path, format!("{version}\n").as_bytes())?)
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let mut tmp = tempfile::Builder::new().prefix(".").suffix(".tmp").permissions(std::os::unix::fs::PermissionsExt::from_mode(0o644)).tempfile_in(dir)?;
+    std::io::Write::write_all(&mut tmp, format!("{version}\n").as_bytes())?;
+    tmp.persist(path)?;
+    Ok(())
 }
 
 fn has_checkpoint(dir: &Path) -> bool {

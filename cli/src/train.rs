@@ -399,7 +399,28 @@ pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
 pub fn read_run_config(run: &Path) -> Result<TrainConfig> {
     let path = run.join("config.yaml");
     let text = fs::read_to_string(&path).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
-    parse_config(serde_yaml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?).with_context(|| format!("reading {}", path.display()))
+    run_document(&text).and_then(parse_config).with_context(|| format!("reading {}", path.display()))
+}
+
+/// A run's `config.yaml` as a document to resume from: the values `resolve` derives (the
+/// learner's seed, the table's row shape) are left out so that a `--set` of what they follow
+/// (`seed`, `env.sensor.…`) carries to them, and fields that older versions wrote are read
+/// the way they meant (`learner.replay_capacity`, read by nothing, dropped; `actors.noise`, now
+/// the algorithm's `learner.{ddpg,td3}.exploration`, dropped when empty).
+fn run_document(text: &str) -> Result<serde_yaml::Value> {
+    let mut doc: serde_yaml::Value = serde_yaml::from_str(text).context("not YAML")?;
+    for (section, field) in [("learner", "seed"), ("replay", "obs_dim"), ("replay", "act_dim"), ("learner", "replay_capacity")] {
+        if let Some(m) = doc.get_mut(section).and_then(|v| v.as_mapping_mut()) {
+            m.remove(field);
+        }
+    }
+    if let Some(m) = doc.get_mut("actors").and_then(|v| v.as_mapping_mut())
+        && let Some(noise) = m.remove("noise")
+        && !noise.is_null()
+    {
+        bail!("actors.noise is set ({noise:?}): exploration noise now lives in learner.ddpg.exploration / learner.td3.exploration; move it there");
+    }
+    Ok(doc)
 }
 
 /// The document's shorthands written where their values live: `reward: NAME` becomes
@@ -517,7 +538,7 @@ fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
     let (mut doc, run, resuming): (serde_yaml::Value, PathBuf, bool) = match &args.resume {
         Some(run) => {
             let text = fs::read_to_string(run.join("config.yaml")).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
-            (serde_yaml::from_str(&text)?, run.clone(), true)
+            (run_document(&text).with_context(|| format!("reading {}", run.join("config.yaml").display()))?, run.clone(), true)
         }
         None => {
             let doc: serde_yaml::Value = serde_yaml::from_str(&preset_text(&args.preset)?).context("preset YAML")?;
@@ -1048,13 +1069,15 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
 
     // Episodes so far (a resumed run continues its curve).
     let csv_path = run.join("episodes.csv");
+    // A crash may have torn the last line: cut it before reading, so what is read is what stays.
+    truncate_torn_line(&csv_path)?;
     let (mut rows, bad) = read_episodes(&csv_path);
     if bad > 0 {
         tracing::warn!(bad, "skipped unreadable lines of episodes.csv");
     }
     let offset_s = rows.last().map_or(0.0, |r| r.wall_s);
-    truncate_torn_line(&csv_path)?;
-    let mut csv = episodes_writer(fs::OpenOptions::new().create(true).append(true).open(&csv_path)?, rows.is_empty() && bad == 0);
+    let empty = fs::metadata(&csv_path).map_or(true, |m| m.len() == 0);
+    let mut csv = episodes_writer(fs::OpenOptions::new().create(true).append(true).open(&csv_path)?, empty);
     let first_episode_this_session = rows.len();
 
     let learner_status = Arc::new(Mutex::new(LearnerStatus::default()));
@@ -1421,7 +1444,8 @@ fn record_episode(e: EpisodeStats, wall_s: f64, rows: &mut Vec<EpisodeRow>, csv:
     let row = EpisodeRow {
         episode: rows.last().map_or(1, |r| r.episode + 1),
         wall_s,
-        actor_id: e.actor_id,
+        // The peer's: one line per row, whatever it sent (a torn line is cut at a newline).
+        actor_id: e.actor_id.replace(['\n', '\r'], " "),
         policy_version: e.policy_version,
         episode_return: e.episode_return,
         steps: e.steps,
@@ -1640,6 +1664,33 @@ mod tests {
             let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
             assert!(e.contains(named), "--set {bad}: {e}");
         }
+    }
+
+    #[test]
+    fn a_run_folder_written_by_an_older_version_still_reads_and_resumes() {
+        // What config.yaml held before the knobs got one home: the shorthands beside env, the
+        // learner's unread replay_capacity, an empty actors.noise, the derived seed and dims.
+        let dir = tempfile::tempdir().unwrap();
+        let (cfg, ..) = load_config(&train_args("env1-sac", &["seed=3"])).unwrap();
+        let mut doc = serde_yaml::to_value(&cfg).unwrap();
+        let m = doc.as_mapping_mut().unwrap();
+        m.insert("reward".into(), "exploration".into());
+        m.insert("max_steps".into(), 1000.into());
+        set_path(&mut doc, "learner.replay_capacity", "1000000").unwrap();
+        set_path(&mut doc, "actors.noise", "null").unwrap();
+        std::fs::write(dir.path().join("config.yaml"), serde_yaml::to_string(&doc).unwrap()).unwrap();
+        let back = read_run_config(dir.path()).unwrap().resolve().unwrap();
+        assert_eq!(back, cfg, "read back as it was resolved");
+        let mut args = train_args("env1-sac", &["seed=5", "env.sensor.beams=9"]);
+        args.resume = Some(dir.path().to_owned());
+        let (resumed, _, resuming) = load_config(&args).unwrap();
+        assert!(resuming);
+        assert_eq!((resumed.seed, resumed.learner.seed, resumed.replay.obs_dim), (5, 5, 21), "derived values follow what they derive from");
+        // An actors.noise that said something is refused by name, with where it lives now.
+        set_path(&mut doc, "actors.noise", "{kind: gaussian, sigma: 0.2}").unwrap();
+        std::fs::write(dir.path().join("config.yaml"), serde_yaml::to_string(&doc).unwrap()).unwrap();
+        let e = format!("{:#}", read_run_config(dir.path()).unwrap_err());
+        assert!(e.contains("actors.noise") && e.contains("learner.td3.exploration"), "{e}");
     }
 
     fn train_args(preset: &str, set: &[&str]) -> TrainArgs {

@@ -56,8 +56,9 @@ pub const TENSORS: &str = "tensors.safetensors";
 pub const POLICY: &str = "policy.safetensors";
 /// `format` value in a policy file's metadata.
 pub const POLICY_FORMAT: &str = "mapless-policy";
-/// Checkpoints kept by [`save`] unless told otherwise.
-pub const DEFAULT_KEEP: usize = 3;
+/// Checkpoints kept unless told otherwise (`DriverConfig::checkpoint_keep`) [ours: 2, the
+/// newest and the one before it, in case the newest is torn].
+pub const DEFAULT_KEEP: usize = 2;
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

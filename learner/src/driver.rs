@@ -43,7 +43,7 @@ pub struct DriverConfig {
     /// Write a checkpoint every N updates; 0 = only when asked (and at the end of `run`)
     /// [ours: 20,000, under a minute of learning at ~400 updates/s is what a crash can lose].
     pub checkpoint_every: u64,
-    /// Checkpoints kept on disk [ours: 2, the newest and one before it in case the newest is torn].
+    /// Checkpoints kept on disk [`checkpoint::DEFAULT_KEEP`].
     pub checkpoint_keep: usize,
     /// Write TensorBoard scalars and a progress event every M updates (M ≥ 1) [ours: 200].
     pub metrics_every: u64,
@@ -54,7 +54,7 @@ pub struct DriverConfig {
 
 impl Default for DriverConfig {
     fn default() -> Self {
-        DriverConfig { publish_every: 50, checkpoint_every: 20_000, checkpoint_keep: 2, metrics_every: 200, send_priorities: false }
+        DriverConfig { publish_every: 50, checkpoint_every: 20_000, checkpoint_keep: checkpoint::DEFAULT_KEEP, metrics_every: 200, send_priorities: false }
     }
 }
 

@@ -580,7 +580,10 @@ pub fn write_file_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerErr
         Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
         _ => PathBuf::from("."),
     };
-    let mut tmp = tempfile::Builder::new().prefix(".").suffix(".tmp").tempfile_in(&dir).map_err(|e| io_error(&dir, e))?;
+    // rw-r--r-- (less the umask) as `fs::write` makes them, not tempfile's private 0600: a
+    // policy or a run folder is read by other users and containers.
+    let mode = <fs::Permissions as std::os::unix::fs::PermissionsExt>::from_mode(0o644);
+    let mut tmp = tempfile::Builder::new().prefix(".").suffix(".tmp").permissions(mode).tempfile_in(&dir).map_err(|e| io_error(&dir, e))?;
     tmp.write_all(bytes).map_err(|e| io_error(tmp.path(), e))?;
     tmp.as_file().sync_all().map_err(|e| io_error(tmp.path(), e))?;
     // A failed persist drops (removes) the temporary file.

@@ -250,3 +250,17 @@ fn a_resumed_pendulum_run_is_bit_identical_to_an_uninterrupted_one() {
         assert_same(&reference, &resumed, algorithm.as_str());
     }
 }
+
+#[test]
+fn atomic_writes_replace_the_file_and_others_can_read_it() {
+    use std::os::unix::fs::PermissionsExt;
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path().join("policy.safetensors");
+    mapless_learner::weights::write_file_atomically(&p, b"old").unwrap();
+    mapless_learner::weights::write_file_atomically(&p, b"new").unwrap();
+    assert_eq!(std::fs::read(&p).unwrap(), b"new");
+    // rw-r--r-- less the umask, as fs::write makes files (tempfile alone makes them 0600).
+    assert_eq!(std::fs::metadata(&p).unwrap().permissions().mode() & 0o044, 0o044);
+    let left: Vec<_> = std::fs::read_dir(d.path()).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert_eq!(left, [std::ffi::OsString::from("policy.safetensors")], "no temporary file left");
+}
