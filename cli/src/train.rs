@@ -198,9 +198,11 @@ struct EvalLine<'a> {
 
 fn append_eval(run: &Path, wall_s: f64, kind: &str, s: &eval::EvalSummary) -> Result<()> {
     let path = run.join("evals.csv");
-    let new = !path.exists();
+    // As episodes.csv: a line a crash tore is cut, the header goes into an empty file only.
+    truncate_torn_line(&path)?;
+    let empty = fs::metadata(&path).map_or(true, |m| m.len() == 0);
     let f = fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
-    let mut w = csv::WriterBuilder::new().has_headers(new).from_writer(f);
+    let mut w = csv::WriterBuilder::new().has_headers(empty).from_writer(f);
     w.serialize(EvalLine {
         wall_s,
         kind,
@@ -1691,6 +1693,33 @@ mod tests {
         std::fs::write(dir.path().join("config.yaml"), serde_yaml::to_string(&doc).unwrap()).unwrap();
         let e = format!("{:#}", read_run_config(dir.path()).unwrap_err());
         assert!(e.contains("actors.noise") && e.contains("learner.td3.exploration"), "{e}");
+    }
+
+    #[test]
+    fn evals_csv_gets_one_header_and_loses_only_a_torn_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = eval::EvalSummary {
+            map: "maps/a,b.yaml".into(),
+            policy_version: 7,
+            episodes: Vec::new(),
+            mean_steps: 1000.0,
+            mean_return: 400.0,
+            mean_eqs: 120.0,
+            mean_ees: 2.5,
+            mean_distance_m: 49.0,
+            mean_shaded_time_s: 0.0,
+            collisions: 0,
+        };
+        append_eval(dir.path(), 10.0, "progress", &s).unwrap();
+        let p = dir.path().join("evals.csv");
+        let torn = format!("{}20.0,progr", std::fs::read_to_string(&p).unwrap());
+        std::fs::write(&p, torn).unwrap();
+        append_eval(dir.path(), 30.0, "final", &s).unwrap();
+        let mut r = csv::Reader::from_path(&p).unwrap();
+        assert_eq!(r.headers().unwrap().iter().next(), Some("wall_s"));
+        let rows: Vec<csv::StringRecord> = r.records().map(|x| x.unwrap()).collect();
+        let kinds: Vec<(&str, &str)> = rows.iter().map(|x| (&x[1], &x[3])).collect();
+        assert_eq!(kinds, [("progress", "maps/a,b.yaml"), ("final", "maps/a,b.yaml")], "a map path with a comma stays one field");
     }
 
     fn train_args(preset: &str, set: &[&str]) -> TrainArgs {
