@@ -396,12 +396,17 @@ pub fn parse_config(mut doc: serde_yaml::Value) -> Result<TrainConfig> {
     })
 }
 
-/// A run folder's resolved `config.yaml` (what `--resume`, `mapless eval` and `mapless
-/// reproduce` read back).
+/// A run folder's `config.yaml` (what `mapless eval` and `mapless reproduce` read back),
+/// unresolved: the values `resolve` derives are left out (see [`run_document`]).
 pub fn read_run_config(run: &Path) -> Result<TrainConfig> {
+    read_run_document(run).and_then(parse_config).with_context(|| format!("reading {}", run.join("config.yaml").display()))
+}
+
+/// A run folder's `config.yaml` as a document ([`run_document`]): what `--resume` starts from.
+fn read_run_document(run: &Path) -> Result<serde_yaml::Value> {
     let path = run.join("config.yaml");
     let text = fs::read_to_string(&path).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
-    run_document(&text).and_then(parse_config).with_context(|| format!("reading {}", path.display()))
+    run_document(&text).with_context(|| format!("reading {}", path.display()))
 }
 
 /// A run's `config.yaml` as a document to resume from: the values `resolve` derives (the
@@ -538,10 +543,7 @@ pub struct TrainArgs {
 
 fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, bool)> {
     let (mut doc, run, resuming): (serde_yaml::Value, PathBuf, bool) = match &args.resume {
-        Some(run) => {
-            let text = fs::read_to_string(run.join("config.yaml")).with_context(|| format!("{} is not a run folder (no config.yaml)", run.display()))?;
-            (run_document(&text).with_context(|| format!("reading {}", run.join("config.yaml").display()))?, run.clone(), true)
-        }
+        Some(run) => (read_run_document(run)?, run.clone(), true),
         None => {
             let doc: serde_yaml::Value = serde_yaml::from_str(&preset_text(&args.preset)?).context("preset YAML")?;
             let name = doc.get("name").and_then(|v| v.as_str()).unwrap_or("run").to_owned();
