@@ -14,8 +14,8 @@ set -euo pipefail
 root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$root"
 command -v cargo >/dev/null || { echo "run.sh: cargo not found; install Rust from https://rustup.rs" >&2; exit 1; }
-# `mapless` links the learner, hence libtorch: install torch 2.13.0 into .torch/ (once).
+# `mapless-learner` links libtorch: install torch 2.13.0 into .torch/ (once).
 bash "$root/scripts/setup-torch.sh"
-echo "run.sh: building mapless, mapless-actor and mapless-replay (release)…"
-cargo build --release --locked -p mapless-cli -p mapless-actor -p mapless-replay --bins
+echo "run.sh: building mapless, mapless-learner, mapless-actor and mapless-replay (release)…"
+cargo build --release --locked -p mapless-cli -p mapless-learner -p mapless-actor -p mapless-replay --bins
 exec "$root/target/release/mapless" train --preset env1-sac --run "$root/runs/env1-sac" --force --minutes 30 "$@"

@@ -47,7 +47,7 @@ MAPLESS="$ROOT/target/release/mapless"
 HAVE_OURS=0
 if [[ "${PEER_ONLY:-0}" != 1 ]]; then
     # From the repository root, so cargo reads .cargo/config.toml (where libtorch is).
-    (cd "$ROOT" && cargo build --release --locked --quiet -p mapless-cli) \
+    (cd "$ROOT" && cargo build --release --locked --quiet -p mapless-cli -p mapless-learner) \
         || { echo "run-sb3-peer.sh: building mapless failed" >&2; exit 1; }
     if "$MAPLESS" bench learner --help > /dev/null 2>&1; then
         HAVE_OURS=1

@@ -3,7 +3,7 @@
 #
 #   mapless-replay:TAG   the replay service       (mapless-replay; glibc only, ~10 MB)
 #   mapless-actor:TAG    an actor process         (mapless-actor;  glibc only, ~10 MB)
-#   mapless-learner:TAG  the learner              (mapless learner; libtorch, several GB)
+#   mapless-learner:TAG  the learner              (mapless-learner; libtorch, several GB)
 #
 # Each image is `FROM scratch`: the release binary plus exactly the shared libraries `ldd` finds
 # for it (system ones at their paths, libtorch and its CUDA libraries in /opt/mapless/lib), so
@@ -21,7 +21,7 @@ out_dir="target/$([ "$profile" = dev ] && echo debug || echo "$profile")"
 command -v docker >/dev/null || { echo "images.sh: docker not found" >&2; exit 1; }
 bash scripts/setup-torch.sh
 echo "images.sh: building the binaries ($profile)" >&2
-cargo build --locked --profile "$profile" -p mapless-cli -p mapless-actor -p mapless-replay --bins
+cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay --bins
 
 # stage NAME BINARY: a root file system with BINARY and its libraries, and a Dockerfile.
 stage() {
@@ -57,5 +57,5 @@ DOCKERFILE
 
 stage replay mapless-replay
 stage actor mapless-actor
-stage learner mapless
+stage learner mapless-learner
 docker images --format '{{.Repository}}:{{.Tag}}  {{.Size}}' | grep -E "^mapless-(replay|actor|learner):$tag " >&2

@@ -13,21 +13,20 @@
 //! first `warmup_steps` vehicle-steps; then SAC samples from its own distribution, TD3 adds
 //! Gaussian noise and DDPG Ornstein–Uhlenbeck noise (reset at each episode start).
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use mapless_net::shm::ShmConfig;
+use mapless_net::{ClientSecurity, metrics};
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, WeightsSnapshot};
 use mapless_proto::{Transition, TransitionBatchBuilder};
-use mapless_replay::shm::ShmConfig;
 use mapless_sim::{EnvConfig, Map, VecEnv, VecStep, World};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 
-use crate::net::GrpcEndpoint;
 use crate::sink::{GrpcSink, ShmSink, Sink, SinkStats};
 use crate::{ActMode, Noise, NoiseConfig, Policy};
 
@@ -44,33 +43,6 @@ pub enum ReplayTarget {
     },
     /// gRPC `Insert`, e.g. `http://127.0.0.1:50051`.
     Grpc { uri: String },
-}
-
-/// TLS and token for services on other hosts (optional on loopback).
-#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
-#[serde(default, deny_unknown_fields)]
-pub struct Security {
-    /// PEM CA certificate to trust (switches `http://` to `https://`).
-    pub tls_ca_file: Option<PathBuf>,
-    /// Name to check the servers' certificates against (default: the URI's host).
-    pub tls_domain: Option<String>,
-    /// File holding the bearer token.
-    pub token_file: Option<PathBuf>,
-}
-
-impl Security {
-    /// `uri` with this TLS and token.
-    pub fn endpoint(&self, uri: &str) -> Result<GrpcEndpoint, crate::net::NetError> {
-        let mut e = GrpcEndpoint::new(uri);
-        if let Some(ca) = &self.tls_ca_file {
-            e = e.with_tls_ca_file(ca, self.tls_domain.clone())?;
-        }
-        if let Some(t) = &self.token_file {
-            e = e.with_token_file(t)?;
-        }
-        e.check()?;
-        Ok(e)
-    }
 }
 
 /// Exploration while training.
@@ -117,7 +89,7 @@ pub struct ActorConfig {
     pub stats: Option<String>,
     /// TLS and token for the gRPC services.
     #[serde(default)]
-    pub security: Security,
+    pub security: ClientSecurity,
     /// Base seed; process `index` uses its own streams derived from it.
     #[serde(default)]
     pub seed: u64,
@@ -174,11 +146,11 @@ impl Gauges {
     fn render(&self) -> String {
         let mut out = String::new();
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
-        crate::metrics::line(&mut out, "mapless_actor_vehicle_steps_total", "counter", "Vehicle-steps taken by this actor process.", g(&self.vehicle_steps));
-        crate::metrics::line(&mut out, "mapless_actor_episodes_total", "counter", "Training episodes finished.", g(&self.episodes));
-        crate::metrics::line(&mut out, "mapless_actor_policy_version", "gauge", "Weights version acting now (0: warm-up).", g(&self.policy_version));
-        crate::metrics::line(&mut out, "mapless_actor_batches_acked_total", "counter", "Transition batches acknowledged by the replay.", g(&self.batches_acked));
-        crate::metrics::line(&mut out, "mapless_actor_reconnects_total", "counter", "Replay connections reopened.", g(&self.reconnects));
+        metrics::line(&mut out, "mapless_actor_vehicle_steps_total", "counter", "Vehicle-steps taken by this actor process.", g(&self.vehicle_steps));
+        metrics::line(&mut out, "mapless_actor_episodes_total", "counter", "Training episodes finished.", g(&self.episodes));
+        metrics::line(&mut out, "mapless_actor_policy_version", "gauge", "Weights version acting now (0: warm-up).", g(&self.policy_version));
+        metrics::line(&mut out, "mapless_actor_batches_acked_total", "counter", "Transition batches acknowledged by the replay.", g(&self.batches_acked));
+        metrics::line(&mut out, "mapless_actor_reconnects_total", "counter", "Replay connections reopened.", g(&self.reconnects));
         out
     }
 }
@@ -211,11 +183,11 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let (stop_tx, stop_rx) = watch::channel(false);
     let (weights_tx, mut weights_rx) = watch::channel::<Option<Arc<WeightsSnapshot>>>(None);
     let weights_endpoint = cfg.security.endpoint(&cfg.weights)?;
-    rt.spawn(crate::weights::follow(weights_endpoint, actor_id.to_owned(), weights_tx, stop_rx.clone()));
+    rt.spawn(mapless_net::weights::follow(weights_endpoint, actor_id.to_owned(), weights_tx, stop_rx.clone()));
     let stats_tx = match &cfg.stats {
         Some(uri) => {
             let (tx, rx) = mpsc::channel::<EpisodeStats>(4096);
-            rt.spawn(crate::stats::report(cfg.security.endpoint(uri)?, rx));
+            rt.spawn(mapless_net::stats::report(cfg.security.endpoint(uri)?, rx));
             Some(tx)
         }
         None => None,
@@ -239,7 +211,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let gauges = Arc::new(Gauges::default());
     if let Some(addr) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        crate::metrics::spawn(&rt, addr, Arc::new(move || g.render()), stop_rx.clone())?;
+        metrics::spawn(&rt, addr, Arc::new(move || g.render()), stop_rx.clone())?;
     }
     let mut policy: Option<Policy> = None;
     let mut noise = Noise::new(cfg.exploration.noise, n, 2);

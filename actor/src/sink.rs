@@ -13,16 +13,15 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use mapless_net::shm::{Ack, ShmConfig, ShmError, ShmWriter};
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{InsertAck, TransitionBatch};
-use mapless_replay::ReplayError;
-use mapless_replay::shm::{Ack, ShmConfig, ShmWriter};
 use tokio::runtime::Handle;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 
-use crate::net::{GrpcEndpoint, NetError};
+use mapless_net::{GrpcEndpoint, NetError};
 
 /// Counters of one sink since it was created.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -206,7 +205,7 @@ impl ShmSink {
             }
             match sent {
                 Ok(()) => return Ok(()),
-                Err(ReplayError::DeadlineExceeded { .. }) => {
+                Err(ShmError::DeadlineExceeded { .. }) => {
                     // Backpressure: the replay holds inserts back (rate limiter). Try again.
                 }
                 Err(e) => {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
 use mapless_actor::{ActMode, Policy};
-use mapless_learner::weights::read_safetensors_file;
+use mapless_proto::weights_file::read_safetensors_file;
 use mapless_sim::render::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, World};
 use rand::SeedableRng;

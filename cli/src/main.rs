@@ -8,10 +8,12 @@
 //!   mapless bench sim [--json]             simulator throughput (vehicle-steps/s)
 //!   mapless train --preset env1-sac        a local actor–learner cluster, supervised
 //!   mapless eval --run runs/NAME --map env3  the trained policy on any map, with pictures
-//!   mapless learner --config FILE          the learner process (started by `train`)
 //!   mapless analyze eqs                    which EQS reading the paper's tables support
 //!   mapless reproduce [--quick|--full]     the paper's matrix; Tables II–V and figures in docs/results
 //! ```
+//!
+//! `mapless` never links libtorch: `train` starts the `mapless-learner` binary beside it (the
+//! learner crate's, the one executable that does), and `bench learner` runs its bench.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -24,7 +26,6 @@ use mapless_sim::{Env, EnvConfig, Map, RaycastMethod, RewardConfig, World};
 use rand::{Rng, SeedableRng};
 
 mod eval;
-mod learner_cmd;
 mod protocol;
 mod reproduce;
 mod signals;
@@ -55,15 +56,6 @@ enum Cmd {
     /// Evaluate a run's policy (deterministic) on any map: steps, EQS, EES, distance, shaded
     /// time per episode and their means; a trajectory picture per episode.
     Eval(EvalArgs),
-    /// The learner process of a cluster (what `mapless train` starts; also for other hosts).
-    Learner {
-        /// Learner config (YAML; `mapless train` writes `run/learner.yaml`).
-        #[arg(long)]
-        config: PathBuf,
-        /// Run name for the log lines.
-        #[arg(long, default_value = "")]
-        run: String,
-    },
     /// Measure throughput.
     Bench {
         #[command(subcommand)]
@@ -272,15 +264,14 @@ fn main() {
     let cli = Cli::parse();
     // Benchmarks run services in-process; their per-stream info lines would drown the figures.
     let quiet = matches!(cli.cmd, Cmd::Bench { .. });
-    mapless_replay::logging::init(cli.log_json, if quiet { "warn" } else { "info" });
+    mapless_net::logging::init(cli.log_json, if quiet { "warn" } else { "info" });
     let role = match &cli.cmd {
-        Cmd::Learner { .. } => "learner",
         Cmd::Train(_) => "supervisor",
         Cmd::Eval(_) => "eval",
         Cmd::Reproduce(_) => "reproduce",
         _ => "cli",
     };
-    mapless_replay::logging::identify(&[("role", role)]);
+    mapless_net::logging::identify(&[("role", role)]);
     if let Err(e) = run(cli) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
@@ -298,10 +289,6 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Train(a) => train::train(&a, log_json),
         Cmd::Eval(a) => eval_cmd(&a),
         Cmd::Reproduce(a) => reproduce::reproduce(&a),
-        Cmd::Learner { config, run } => {
-            mapless_replay::logging::identify(&[("run", &run), ("role", "learner")]);
-            learner_cmd::run(&config)
-        }
         Cmd::Analyze { cmd: AnalyzeCmd::Eqs { trajectories, seed, out, json } } => analyze_eqs(trajectories, seed, out.as_deref(), json),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
@@ -514,13 +501,7 @@ fn bench_sim(map: &str, seconds: f64, vehicles: usize, json: bool) -> Result<()>
 }
 
 /// Prints one figure: a JSON line, or a human-readable line.
-fn report(json: bool, bench: &str, config: serde_json::Value, value: f64, unit: &str) {
-    if json {
-        println!("{}", serde_json::json!({"bench": bench, "config": config, "value": (value * 100.0).round() / 100.0, "unit": unit}));
-    } else {
-        println!("  {bench:<34} {:<58} {value:>14.1} {unit}", config.to_string());
-    }
-}
+use mapless_net::metrics::bench_report as report;
 
 fn bench_e2e(actors: &[usize], seconds: f64, vehicles: usize, set: &[String], json: bool) -> Result<()> {
     if !(seconds > 25.0) || actors.is_empty() || actors.contains(&0) || vehicles == 0 {
@@ -597,70 +578,17 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
     Ok(())
 }
 
+/// `mapless bench learner` is the learner binary's bench (`mapless-learner bench`, the one
+/// executable that links libtorch), run with the same flags.
 fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String], unfused: bool, autograd: bool, json: bool) -> Result<()> {
-    use mapless_learner::config::{AlgorithmKind, LearnerConfig};
-    use mapless_learner::{Device, TorchThreads, algo::bench_updates};
-    if !(seconds > 0.0) || threads.is_empty() || threads.contains(&0) {
-        bail!("--seconds must be > 0 and every --threads count ≥ 1");
-    }
-    // Fails here, with the reason, when the device is not usable on this machine.
-    Device::parse(device)?;
-    let (obs_dim, act_dim) = (17usize, 2usize);
-    let kinds = algos
-        .iter()
-        .map(|a| match a.trim().to_ascii_lowercase().as_str() {
-            "ddpg" => Ok(AlgorithmKind::Ddpg),
-            "td3" => Ok(AlgorithmKind::Td3),
-            "sac" => Ok(AlgorithmKind::Sac),
-            other => bail!("unknown algorithm `{other}` (expected ddpg, td3 or sac)"),
-        })
-        .collect::<Result<Vec<_>>>()?;
-    if !json {
-        println!("learner updates per second on {device}: obs {obs_dim}, act {act_dim}, 2×256 hidden, minibatch 128, {seconds} s each");
-    }
-    let dev = Device::parse(device)?;
-    for &t in threads {
-        TorchThreads { intra_op: t, inter_op: 1 }.apply()?;
-        // The bound every algorithm is measured against: libtorch's product of the hidden
-        // layer's shape, here, with these threads (mapless_learner::ceiling).
-        let base = LearnerConfig::default();
-        let shape = format!("{}x{}x{}", base.batch_size, base.hidden_width, base.hidden_width);
-        let mut f32_gflops = 0.0;
-        for (name, bf16) in [("f32", false), ("bf16", true)] {
-            let g = mapless_learner::ceiling::matmul_gflops(base.batch_size as i64, base.hidden_width, bf16, dev, seconds.min(2.0))?;
-            if name == "f32" {
-                f32_gflops = g;
-            }
-            report(json, "learner.matmul_gflops", serde_json::json!({"device": device, "threads": t, "dtype": name, "shape": shape}), g, "GFLOP/s");
-        }
-        for &kind in &kinds {
-            // (fused_update, fused_critics): the default first, then what was asked for.
-            let mut variants = vec![(true, true)];
-            if autograd {
-                variants.push((false, true));
-            }
-            if unfused && kind != AlgorithmKind::Ddpg {
-                variants.push((false, false));
-            }
-            for (fused_update, fused) in variants {
-                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, ..LearnerConfig::default() };
-                // libtorch fixes the inter-op pool once per process; only the intra-op count varies.
-                let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
-                // The fused update runs on the CPU only; elsewhere the autograd path runs.
-                let path = if fused_update && dev == Device::Cpu { "fused" } else { "autograd" };
-                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "update": path, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
-                report(json, "learner.updates_per_s", config, v, "updates/s");
-                if fused_update {
-                    // Matrix-product work per update, and the updates/s that f32 products alone
-                    // would allow at the rate just measured: an estimate of the most f32 code can do.
-                    let flops = mapless_learner::ceiling::update_flops(&cfg, obs_dim, act_dim);
-                    let bound = f32_gflops * 1e9 / flops;
-                    let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "flop_per_update": flops, "f32_matmul_gflops": (f32_gflops * 10.0).round() / 10.0});
-                    report(json, "learner.f32_ceiling_updates_per_s", config.clone(), bound, "updates/s");
-                    report(json, "learner.share_of_f32_ceiling", config, v / bound, "fraction");
-                }
-            }
-        }
+    let list = |v: &[String]| v.join(",");
+    let mut args = vec!["bench".to_owned(), "--seconds".into(), seconds.to_string(), "--device".into(), device.to_owned()];
+    args.extend(["--threads".into(), list(&threads.iter().map(|t| t.to_string()).collect::<Vec<_>>()), "--algos".into(), list(algos)]);
+    args.extend([(unfused, "--unfused"), (autograd, "--autograd"), (json, "--json")].into_iter().filter(|(on, _)| *on).map(|(_, flag)| flag.to_owned()));
+    let bin = train::sibling("mapless-learner")?;
+    let status = std::process::Command::new(&bin).args(&args).status().with_context(|| format!("running {}", bin.display()))?;
+    if !status.success() {
+        bail!("{} bench failed ({status})", bin.display());
     }
     Ok(())
 }

@@ -1,16 +1,6 @@
 //! Shutdown signals.
 
-/// Resolves on the first SIGINT or SIGTERM.
-pub async fn termination() {
-    let Ok(mut term) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) else {
-        let _ = tokio::signal::ctrl_c().await;
-        return;
-    };
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-    }
-}
+pub use mapless_net::signals::termination;
 
 /// Asks process `pid` to stop (SIGTERM); a process that is already gone is not an error.
 pub fn terminate(pid: u32) {

@@ -2,7 +2,7 @@
 //!
 //! ```text
 //!   mapless train ─┬─ mapless-replay  (run/replay.yaml; persists to run/replay/)
-//!   (supervisor,   ├─ mapless learner (run/learner.yaml; checkpoints, TensorBoard, policy file)
+//!   (supervisor,   ├─ mapless-learner (run/learner.yaml; checkpoints, TensorBoard, policy file)
 //!    stats         └─ mapless-actor × N (run/actor.yaml) ──iceoryx2──► replay
 //!    collector)         ▲ weights (gRPC) ── learner        └─ episodes (gRPC) ──► supervisor
 //! ```
@@ -27,19 +27,17 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use mapless_actor::NoiseConfig;
 use mapless_actor::run::{ActorConfig, ExplorationSettings, ReplayTarget};
-use mapless_learner::config::{AlgorithmKind, ExplorationNoise, LearnerConfig};
-use mapless_learner::driver::DriverConfig;
+use mapless_learner_config::{AlgorithmKind, DriverConfig, ExplorationNoise, LearnerConfig, LearnerServiceConfig};
+use mapless_net::shm::ShmConfig;
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ServerInfoRequest};
 use mapless_replay::TableConfig;
 use mapless_replay::server::ServerConfig;
-use mapless_replay::shm::ShmConfig;
 use mapless_sim::plot::{CurvePoint, CurveStyle, training_curves_png};
 use mapless_sim::{EnvConfig, RewardConfig};
 use serde::{Deserialize, Serialize};
 
 use crate::eval;
-use crate::learner_cmd::LearnerServiceConfig;
 use crate::protocol;
 
 /// Built-in presets: name → YAML (the files under `presets/`).
@@ -703,7 +701,7 @@ impl Proc {
         let mut c = Command::new(&self.cmd[0]);
         c.args(&self.cmd[1..]).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(log);
         // Children without a --run flag (the replay) take the run name for their log lines from here.
-        if let Some(run) = mapless_replay::logging::field("run") {
+        if let Some(run) = mapless_net::logging::field("run") {
             c.env("MAPLESS_RUN", run);
         }
         // Its own process group: a Ctrl-C at the terminal reaches the supervisor only, which
@@ -839,7 +837,7 @@ fn said_addr(said: &[String], prefix: &str) -> Result<SocketAddr> {
 }
 
 /// `mapless-replay` and `mapless-actor` live next to this executable.
-fn sibling(name: &str) -> Result<PathBuf> {
+pub fn sibling(name: &str) -> Result<PathBuf> {
     let exe = std::env::current_exe()?;
     let p = exe.with_file_name(name);
     if p.exists() {
@@ -897,7 +895,7 @@ fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f6
 /// Writes `path` whole or not at all (a temporary file beside it, then a rename), so a run
 /// killed mid-write leaves the old file, never a torn one.
 pub fn write_atomic(path: &Path, contents: &str) -> Result<()> {
-    mapless_learner::weights::write_file_atomically(path, contents.as_bytes()).with_context(|| format!("writing {}", path.display()))
+    mapless_proto::weights_file::write_file_atomically(path, contents.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }
 
 /// How `Summary::stopped_because` begins for a run that Ctrl-C or SIGTERM stopped.
@@ -948,7 +946,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     fs::create_dir_all(&logs)?;
     write_atomic(&run.join("config.yaml"), &serde_yaml::to_string(&cfg)?)?;
     let run_name = run.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into());
-    mapless_replay::logging::identify(&[("run", &run_name), ("role", "supervisor")]);
+    mapless_net::logging::identify(&[("run", &run_name), ("role", "supervisor")]);
     let run_abs = fs::canonicalize(&run)?;
 
     // Stop flag: Ctrl-C / SIGTERM.
@@ -971,7 +969,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let domain = format!("mpl{:08x}_", crc32fast::hash(run_abs.to_string_lossy().as_bytes()));
     let shm = ShmConfig { domain: domain.clone(), ..ShmConfig::for_table(&cfg.replay.name) };
 
-    let exe = std::env::current_exe()?.to_string_lossy().into_owned();
+    let learner_bin = sibling("mapless-learner")?.to_string_lossy().into_owned();
     let replay_bin = sibling("mapless-replay")?.to_string_lossy().into_owned();
     let actor_bin = sibling("mapless-actor")?.to_string_lossy().into_owned();
     let p = |x: &Path| x.to_string_lossy().into_owned();
@@ -1017,11 +1015,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         metrics_listen: Some(any_port),
     };
     fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
-    let mut learner_cmd = vec![exe];
-    if log_json {
-        learner_cmd.push("--log-json".into());
-    }
-    learner_cmd.extend(["learner".into(), "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()]);
+    let learner_cmd = json_flag(vec![learner_bin, "--config".into(), p(&run_abs.join("learner.yaml")), "--run".into(), run_name.clone()]);
     let (mut learner, weights_addr, learner_metrics) = start_service("learner", learner_cmd, logs.join("learner.log"), "weights on ", &line_rx, &line_tx)?;
     // A restarted learner comes back on the same ports.
     learner_cfg.weights_listen = weights_addr;
@@ -1034,7 +1028,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     let (ep_tx, mut ep_rx) = tokio::sync::mpsc::channel::<EpisodeStats>(8192);
     let (collector_stop_tx, collector_stop_rx) = tokio::sync::watch::channel(false);
     rt.spawn(async move {
-        if let Err(e) = mapless_actor::stats::serve_collector(stats_listener, ep_tx, collector_stop_rx).await {
+        if let Err(e) = mapless_net::stats::serve_collector(stats_listener, ep_tx, collector_stop_rx).await {
             tracing::error!(error = %e, "stats collector stopped");
         }
     });

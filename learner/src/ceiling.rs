@@ -37,6 +37,7 @@ use tch::{Kind, Tensor};
 
 use crate::LearnerError;
 use crate::config::{AlgorithmKind, LearnerConfig};
+use crate::device::ToTch;
 
 /// FLOP of matrix products in one update of `cfg`'s algorithm and sizes (module docs).
 pub fn update_flops(cfg: &LearnerConfig, obs_dim: usize, act_dim: usize) -> f64 {

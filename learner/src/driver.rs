@@ -17,7 +17,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use mapless_proto::v1::WeightsSnapshot;
-use serde::{Deserialize, Serialize};
 
 use crate::LearnerError;
 use crate::algo::{Agent, UpdateStats};
@@ -30,33 +29,7 @@ use crate::weights::{WeightsPublisher, snapshot_from_tensors, unix_ms_now};
 /// Key of the weights version in a checkpoint's `extra` JSON.
 pub const EXTRA_WEIGHTS_VERSION: &str = "weights_version";
 
-/// How often the loop publishes, checkpoints and reports. The defaults are what `mapless train`
-/// runs with; none is the paper's (its MATLAB agent acts, learns and keeps its state in one
-/// process), each says why.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(default, deny_unknown_fields)]
-pub struct DriverConfig {
-    /// Publish the policy every K updates (K ≥ 1). Actors act with weights at most K updates old
-    /// [ours: 50; the paper acts with the newest weights; at the ~400 updates/s of a 2-core
-    /// machine a published policy is about 0.1 s old].
-    pub publish_every: u64,
-    /// Write a checkpoint every N updates; 0 = only when asked (and at the end of `run`)
-    /// [ours: 20,000, under a minute of learning at ~400 updates/s is what a crash can lose].
-    pub checkpoint_every: u64,
-    /// Checkpoints kept on disk [`checkpoint::DEFAULT_KEEP`].
-    pub checkpoint_keep: usize,
-    /// Write TensorBoard scalars and a progress event every M updates (M ≥ 1) [ours: 200].
-    pub metrics_every: u64,
-    /// Send |TD error| back as new priorities (prioritised replay tables only) [paper: uniform
-    /// replay, so off].
-    pub send_priorities: bool,
-}
-
-impl Default for DriverConfig {
-    fn default() -> Self {
-        DriverConfig { publish_every: 50, checkpoint_every: 20_000, checkpoint_keep: checkpoint::DEFAULT_KEEP, metrics_every: 200, send_priorities: false }
-    }
-}
+pub use mapless_learner_config::DriverConfig;
 
 /// What [`Driver::run`] did.
 #[derive(Debug, Clone, PartialEq)]

@@ -67,9 +67,10 @@ pub enum LearnerError {
     #[error("libtorch: {0}")]
     Torch(#[from] tch::TchError),
 
-    /// The in-process replay table refused or failed a call (see `source::InProcess`).
-    #[error("replay table: {0}")]
-    ReplayTable(#[from] mapless_replay::ReplayError),
+    /// A replay source other than the gRPC one (e.g. a table in the same process) refused or
+    /// failed a call.
+    #[error("replay: {0}")]
+    Replay(String),
 
     /// A gRPC call to a peer (the replay service, the weights service) failed: the peer could
     /// not be reached (`Unavailable`), or it answered with an error status.
@@ -193,9 +194,29 @@ pub enum LearnerError {
     },
 }
 
-impl From<mapless_actor::net::NetError> for LearnerError {
-    fn from(e: mapless_actor::net::NetError) -> Self {
-        use mapless_actor::net::NetError;
+impl From<mapless_learner_config::ConfigError> for LearnerError {
+    fn from(e: mapless_learner_config::ConfigError) -> Self {
+        use mapless_learner_config::ConfigError;
+        match e {
+            ConfigError::InvalidConfig { field, reason } => LearnerError::InvalidConfig { field, reason },
+            ConfigError::InvalidDevice { spec, reason } => LearnerError::InvalidDevice { spec, reason },
+        }
+    }
+}
+
+impl From<mapless_proto::weights_file::WeightsFileError> for LearnerError {
+    fn from(e: mapless_proto::weights_file::WeightsFileError) -> Self {
+        use mapless_proto::weights_file::WeightsFileError;
+        match e {
+            WeightsFileError::Invalid { origin, reason } => LearnerError::InvalidWeights { origin, reason },
+            WeightsFileError::Io { path, error } => LearnerError::FileIo { path, error },
+        }
+    }
+}
+
+impl From<mapless_net::NetError> for LearnerError {
+    fn from(e: mapless_net::NetError) -> Self {
+        use mapless_net::NetError;
         match e {
             NetError::Grpc { service, endpoint, code, message } => LearnerError::Grpc { service, endpoint, code, message },
             NetError::Config { reason } => LearnerError::ReplaySourceConfig { reason },

@@ -1,7 +1,8 @@
 //! The mapless learner: off-policy actor–critic updates (DDPG, TD3, SAC; SPEC §2) on libtorch
 //! through tch, on CPU or CUDA.
 //!
-//! - [`Device`]: `cpu` / `cuda` / `cuda:N`, checked against what libtorch can see;
+//! - [`Device`]: `cpu` / `cuda` / `cuda:N`, checked against what libtorch can see
+//!   ([`device::available`]);
 //! - [`TorchThreads`]: libtorch's CPU thread pools, set explicitly (default 1 each, because
 //!   the learner shares cores with actors and libtorch's threads spin);
 //! - [`Mlp`]: the paper's two-hidden-layer ReLU network body with stable parameter names.
@@ -12,7 +13,7 @@
 // `Lanes::ONE` is a const with a `Cell` on purpose: each use is a fresh one-lane value.
 #![allow(clippy::borrow_interior_mutable_const)]
 
-mod device;
+pub mod device;
 mod error;
 mod malloc;
 pub mod nets;
@@ -23,7 +24,8 @@ pub mod algo;
 pub mod batch;
 pub mod ceiling;
 pub mod checkpoint;
-pub mod config;
+/// The learner's configuration (`mapless-learner-config`, readable without libtorch).
+pub use mapless_learner_config as config;
 mod cpu;
 pub mod driver;
 pub mod envs;

@@ -20,8 +20,7 @@ use tch::{Tensor, nn};
 
 use crate::LearnerError;
 
-/// Hidden-layer width when none is given ([inferred], SPEC §2).
-pub const DEFAULT_HIDDEN_WIDTH: i64 = 256;
+pub use mapless_learner_config::DEFAULT_HIDDEN_WIDTH;
 
 /// Parameter path segment of the first hidden layer.
 pub const LAYER_0: &str = "l0";

@@ -1,9 +1,9 @@
-//! Where the learner's minibatches come from: the replay table in this process, or the replay
-//! service over gRPC. Both hand out `mapless.v1.SampledBatch`es and take priority updates.
+//! Where the learner's minibatches come from: any [`ReplaySource`] — the replay service over
+//! gRPC ([`GrpcSource`]), or, in tests, a table in the same process (the workspace's `tests`
+//! crate implements one; the learner does not depend on the replay crate). Every source hands
+//! out `mapless.v1.SampledBatch`es and takes priority updates.
 //!
 //! ```text
-//!  InProcess:  update loop ──Table::sample──► Arc<Table>            (same process)
-//!
 //!  GrpcSource: update loop ◄── bounded queue (queue_depth) ◄── sample task ◄══ Sample stream (prefetch)
 //!              update loop ──► bounded queue ──► priority task ══► UpdatePriorities (async)
 //!                              └──────── background thread: current-thread tokio runtime ──┘
@@ -25,21 +25,19 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{PriorityUpdate, PriorityUpdateResponse, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest};
-use mapless_replay::Table;
 use tokio::sync::{Notify, watch};
 use tonic::Code;
 use tonic::transport::Channel;
 use tracing::{debug, info, warn};
 
 use crate::error::LearnerError;
-/// Where a gRPC service is and how to reach it (moved to the libtorch-free actor crate, which
-/// shares it).
-pub use mapless_actor::net::GrpcEndpoint;
+/// Where a gRPC service is and how to reach it (`mapless-net`, shared with the actors).
+pub use mapless_net::GrpcEndpoint;
 
 // ---------------------------------------------------------------------------------------------
 // The trait
@@ -91,8 +89,9 @@ pub struct SourceStats {
     pub last_error: Option<String>,
 }
 
-/// Checks priorities before they leave the update thread; returns them as f64.
-fn checked_priorities(keys: &[u64], priorities: &[f32]) -> Result<Vec<f64>, LearnerError> {
+/// Checks priorities before they leave the update thread; returns them as f64. Every
+/// [`ReplaySource`] calls it first in `update_priorities`.
+pub fn checked_priorities(keys: &[u64], priorities: &[f32]) -> Result<Vec<f64>, LearnerError> {
     if keys.len() != priorities.len() {
         return Err(LearnerError::InvalidPriorities { reason: format!("{} keys but {} priorities", keys.len(), priorities.len()) });
     }
@@ -100,99 +99,6 @@ fn checked_priorities(keys: &[u64], priorities: &[f32]) -> Result<Vec<f64>, Lear
         return Err(LearnerError::InvalidPriorities { reason: format!("priority {i} (key {}) is {}; priorities must be finite and >= 0", keys[i], priorities[i]) });
     }
     Ok(priorities.iter().map(|&p| f64::from(p)).collect())
-}
-
-// ---------------------------------------------------------------------------------------------
-// In process
-// ---------------------------------------------------------------------------------------------
-
-/// Samples straight from a replay [`Table`] in this process (single-process runs, tests).
-pub struct InProcess {
-    table: Arc<Table>,
-    batch_size: usize,
-    importance_beta: Option<f64>,
-    timeout: Option<Duration>,
-    stats: SourceStats,
-}
-
-impl std::fmt::Debug for InProcess {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("InProcess")
-            .field("table", &self.table.config().name)
-            .field("batch_size", &self.batch_size)
-            .field("importance_beta", &self.importance_beta)
-            .field("timeout", &self.timeout)
-            .finish()
-    }
-}
-
-impl InProcess {
-    /// Minibatches of `batch_size` rows from `table`; `batch_size` must be in
-    /// `1..=table.config().max_sample_rows`.
-    pub fn new(table: Arc<Table>, batch_size: usize) -> Result<Self, LearnerError> {
-        let max = table.config().max_sample_rows;
-        if batch_size == 0 || batch_size > max {
-            return Err(LearnerError::ReplaySourceConfig { reason: format!("batch_size is {batch_size}, must be in 1..={max} (the table's max_sample_rows)") });
-        }
-        Ok(Self { table, batch_size, importance_beta: None, timeout: None, stats: SourceStats::default() })
-    }
-
-    /// Importance-sampling exponent β (finite, >= 0); without it the table's configured β is
-    /// used (0 for uniform tables).
-    pub fn with_importance_beta(mut self, beta: f64) -> Result<Self, LearnerError> {
-        if !(beta.is_finite() && beta >= 0.0) {
-            return Err(LearnerError::ReplaySourceConfig { reason: format!("importance_beta is {beta}, must be finite and >= 0") });
-        }
-        self.importance_beta = Some(beta);
-        Ok(self)
-    }
-
-    /// Longest `next_batch` waits on the rate limiter before failing with the table's
-    /// deadline error; without it, it waits as long as it takes.
-    pub fn with_timeout(mut self, timeout: Duration) -> Self {
-        self.timeout = Some(timeout);
-        self
-    }
-
-    /// The table sampled from.
-    pub fn table(&self) -> &Arc<Table> {
-        &self.table
-    }
-}
-
-impl ReplaySource for InProcess {
-    fn next_batch(&mut self) -> Result<SampledBatch, LearnerError> {
-        let deadline = self.timeout.map(|t| Instant::now() + t);
-        match self.table.sample(self.batch_size, self.importance_beta, deadline) {
-            Ok(batch) => {
-                self.stats.batches += 1;
-                Ok(batch)
-            }
-            Err(e) => {
-                self.stats.last_error = Some(e.to_string());
-                Err(e.into())
-            }
-        }
-    }
-
-    fn update_priorities(&mut self, keys: &[u64], priorities: &[f32]) -> Result<(), LearnerError> {
-        let priorities = checked_priorities(keys, priorities)?;
-        match self.table.update_priorities(keys, &priorities) {
-            Ok(_) => {
-                self.stats.priority_updates += 1;
-                Ok(())
-            }
-            Err(e) => {
-                self.stats.priority_update_errors += 1;
-                self.stats.last_error = Some(e.to_string());
-                Err(e.into())
-            }
-        }
-    }
-
-    fn stats(&self) -> SourceStats {
-        self.stats.clone()
-    }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -94,7 +94,7 @@ fn mlp_hidden_width_is_configurable() {
 
 #[test]
 fn cuda_device_is_a_clear_error_when_libtorch_sees_no_gpu() {
-    let parsed = Device::parse("cuda");
+    let parsed = mapless_learner::device::available("cuda");
     if tch::Cuda::is_available() {
         assert_eq!(parsed.unwrap(), Device::Cuda(0));
         eprintln!("CUDA is available here; the no-GPU error path was not exercised");
@@ -105,7 +105,7 @@ fn cuda_device_is_a_clear_error_when_libtorch_sees_no_gpu() {
     let message = err.to_string();
     assert!(message.contains("no CUDA device") && message.contains("use `cpu`"), "{message}");
     // And an explicit ordinal fails the same way, before any tensor is created.
-    assert!(matches!(Device::parse("cuda:1"), Err(LearnerError::CudaUnavailable { .. })));
+    assert!(matches!(mapless_learner::device::available("cuda:1"), Err(LearnerError::CudaUnavailable { .. })));
 }
 
 /// build.rs must keep libtorch_cuda.so in the link (see there); without it CUDA is never

@@ -23,7 +23,12 @@
 //!   [`FloatEncoding`]), f32 tensor conversion, and the error type [`ProtoError`] with its
 //!   mapping to a gRPC status.
 //!
-//! Nothing here does I/O or spawns tasks; servers and clients live in the crates that use them.
+//! - [`weights_file`]: the `.safetensors` codec of [`v1::WeightsSnapshot`] (policy files that
+//!   actors, `mapless eval` and deployments read without libtorch) and the workspace's one
+//!   atomic file write.
+//!
+//! Apart from [`weights_file`]'s reads and writes, nothing here does I/O or spawns tasks;
+//! servers and clients live in `mapless-net` and the crates that use it.
 
 mod error;
 mod floats;
@@ -31,6 +36,7 @@ mod replay;
 mod stats;
 mod tensor;
 mod transition;
+pub mod weights_file;
 
 pub use error::ProtoError;
 pub use floats::{FloatColumn, FloatEncoding, extend_f32le, f32le_bytes};
@@ -65,6 +71,10 @@ const _: () = assert!(PROTOCOL_VERSION as i32 == v1::ProtocolVersion::V1 as i32)
 /// Bounding every message keeps a misbehaving peer from making a server allocate without
 /// limit. tonic rejects a larger message with OUT_OF_RANGE before it reaches mapless code.
 pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+
+/// Name of the replay table when none is configured (`replay.name`); the shared-memory
+/// ingest's default service prefix is derived from it.
+pub const DEFAULT_TABLE: &str = "transitions";
 
 /// Longest accepted `actor_id`, in bytes. Ids are keys in the replay server's persistent
 /// de-duplication table and appear in every log line, so they stay short.

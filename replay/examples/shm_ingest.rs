@@ -10,7 +10,8 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use mapless_replay::shm::{ShmConfig, ShmIngest};
+use mapless_net::shm::ShmConfig;
+use mapless_replay::shm::ShmIngest;
 use mapless_replay::{RateLimiterConfig, Table, TableConfig};
 
 fn main() {

@@ -14,8 +14,9 @@ use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use mapless_net::shm::ShmConfig;
 use mapless_proto::v1::TransitionBatch;
-use mapless_replay::shm::{ShmConfig, ShmIngest};
+use mapless_replay::shm::ShmIngest;
 use mapless_replay::{RateLimiterConfig, Table, TableConfig};
 use prost::Message;
 

@@ -15,7 +15,7 @@ mod shm_common;
 use std::io::Write;
 use std::time::Duration;
 
-use mapless_replay::shm::{Ack, ShmConfig};
+use mapless_net::shm::{Ack, ShmConfig};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();

@@ -217,7 +217,8 @@ pub fn resident_bytes() -> u64 {
 /// [`ShmWriter`](crate::shm::ShmWriter) with its own window of unacknowledged batches), for
 /// about `duration`, into a full table. Uses a private iceoryx2 domain and removes it afterwards.
 pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration) -> Result<f64, ReplayError> {
-    use crate::shm::{ShmConfig, ShmIngest, ShmWriter};
+    use crate::shm::ShmIngest;
+    use mapless_net::shm::{ShmConfig, ShmWriter};
     let table = Arc::new(full_table(obs_dim)?);
     let id = std::process::id();
     let domain = format!("mlbench{id}_");
@@ -255,7 +256,7 @@ pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration)
     }
     ingest.stop();
     table.close();
-    crate::shm::remove_private_domain_files(&domain);
+    mapless_net::shm::remove_private_domain_files(&domain);
     result
 }
 

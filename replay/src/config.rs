@@ -90,7 +90,7 @@ pub struct TableConfig {
 impl Default for TableConfig {
     fn default() -> Self {
         TableConfig {
-            name: "transitions".into(),
+            name: mapless_proto::DEFAULT_TABLE.into(),
             capacity: 1_000_000,
             obs_dim: 17,
             act_dim: 2,

@@ -23,6 +23,18 @@ pub enum ReplayError {
     Storage { path: std::path::PathBuf, problem: String },
 }
 
+impl From<mapless_net::shm::ShmError> for ReplayError {
+    fn from(e: mapless_net::shm::ShmError) -> Self {
+        use mapless_net::shm::ShmError;
+        match e {
+            ShmError::BadRequest(m) => ReplayError::BadRequest(m),
+            ShmError::DeadlineExceeded { op, waited_ms, state } => ReplayError::DeadlineExceeded { op, waited_ms, state },
+            ShmError::Closed(m) => ReplayError::Closed(m),
+            ShmError::InvalidConfig(m) => ReplayError::InvalidConfig(m),
+        }
+    }
+}
+
 impl ReplayError {
     /// The gRPC status a client sees.
     pub fn to_status(&self) -> tonic_status::Status {

@@ -14,7 +14,6 @@ pub mod bench;
 pub mod config;
 pub mod error;
 pub mod grpc;
-pub mod logging;
 pub mod metrics;
 pub mod rate_limiter;
 pub mod server;

@@ -21,28 +21,15 @@ use std::fmt::Write as _;
 use std::future::Future;
 use std::sync::Arc;
 
-use axum::extract::State;
-use axum::http::header::CONTENT_TYPE;
-use axum::response::IntoResponse;
-use axum::routing::get;
 use tokio::net::TcpListener;
 
 use crate::grpc::{newest_policy_version, policy_version_lag};
 use crate::table::{ActorStats, Table};
 
-/// Content type of the text exposition format.
-pub const CONTENT_TYPE_TEXT: &str = "text/plain; version=0.0.4; charset=utf-8";
-
-/// Serves `GET /metrics` for `table` on `listener` until `shutdown` resolves.
+/// Serves `GET /metrics` for `table` on `listener` until `shutdown` resolves
+/// (`mapless_net::metrics`, the exporter every process uses).
 pub async fn serve(listener: TcpListener, table: Arc<Table>, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-    let app = axum::Router::new().route("/metrics", get(scrape)).with_state(table);
-    axum::serve(listener, app).with_graceful_shutdown(shutdown).await
-}
-
-async fn scrape(State(table): State<Arc<Table>>) -> impl IntoResponse {
-    // The table lock is held for microseconds, but it is a std mutex: keep it off the runtime.
-    let body = tokio::task::spawn_blocking(move || render(&table)).await.unwrap_or_else(|e| format!("# render failed: {e}\n"));
-    ([(CONTENT_TYPE, CONTENT_TYPE_TEXT)], body)
+    mapless_net::metrics::serve(listener, Arc::new(move || render(&table)), shutdown).await
 }
 
 /// The exposition text for `table`.

@@ -18,17 +18,15 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use mapless_net::serve::{Security, TlsFiles};
+use mapless_net::serve::{ServeError, serve_secured};
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::replay_service_server::ReplayServiceServer;
 use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
-use tokio::sync::watch;
-use tonic::service::Interceptor;
+use tonic::service::Routes;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::TcpIncoming;
-use tonic::transport::{Identity, Server, ServerTlsConfig};
-use tonic::{Request, Status};
-use tracing::{info, warn};
+use tracing::info;
 
 use crate::config::{PersistenceConfig, TableConfig};
 use crate::error::ReplayError;
@@ -39,10 +37,6 @@ use crate::table::Table;
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
 /// Default Prometheus address: loopback only (9464 is the OpenTelemetry Prometheus port).
 pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9464";
-/// HTTP/2 pings that find dead peers (a crashed actor host sends no RST), so their streams —
-/// and their actor's one-stream slot — are released within interval + timeout.
-const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(10);
-const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
 
 /// Everything the `mapless-replay` binary reads from its YAML file (flags override it).
 ///
@@ -82,17 +76,7 @@ pub struct ServerConfig {
     pub shm_enabled: bool,
     /// Shared-memory ingest settings; none derives them from the table name
     /// (`mapless/replay/<table>`).
-    pub shm: Option<crate::shm::ShmConfig>,
-}
-
-/// PEM files for TLS.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct TlsFiles {
-    /// Certificate chain, leaf first.
-    pub cert: PathBuf,
-    /// Private key of the leaf certificate.
-    pub key: PathBuf,
+    pub shm: Option<mapless_net::shm::ShmConfig>,
 }
 
 impl Default for ServerConfig {
@@ -116,8 +100,8 @@ impl Default for ServerConfig {
 
 impl ServerConfig {
     /// The shared-memory ingest settings in effect.
-    pub fn shm_config(&self) -> crate::shm::ShmConfig {
-        self.shm.clone().unwrap_or_else(|| crate::shm::ShmConfig::for_table(&self.table.name))
+    pub fn shm_config(&self) -> mapless_net::shm::ShmConfig {
+        self.shm.clone().unwrap_or_else(|| mapless_net::shm::ShmConfig::for_table(&self.table.name))
     }
 }
 
@@ -137,8 +121,8 @@ pub enum ServerError {
     Insecure { addr: SocketAddr },
     #[error(transparent)]
     Replay(#[from] ReplayError),
-    #[error("gRPC transport: {0}")]
-    Transport(#[from] tonic::transport::Error),
+    #[error(transparent)]
+    Serve(#[from] ServeError),
     #[error(transparent)]
     Io(#[from] std::io::Error),
 }
@@ -162,50 +146,12 @@ impl ServerConfig {
 
     /// Reads the TLS and token files.
     pub fn security(&self) -> Result<Security, ServerError> {
-        let read = |what, path: &Path| std::fs::read(path).map_err(|error| ServerError::Read { what, path: path.into(), error });
-        let tls = match &self.tls {
-            Some(files) => Some(TlsPem { cert: read("TLS certificate", &files.cert)?, key: read("TLS key", &files.key)? }),
-            None => None,
-        };
-        let token = match &self.auth_token_file {
-            Some(path) => {
-                let raw = read("token file", path)?;
-                let token = String::from_utf8_lossy(&raw).trim().to_owned();
-                if token.is_empty() {
-                    return Err(ServerError::ConfigFile { path: path.clone(), problem: "the token file is empty".into() });
-                }
-                Some(token)
-            }
-            None => None,
-        };
-        Ok(Security { tls, token })
+        Ok(Security::read(self.tls.as_ref(), self.auth_token_file.as_deref())?)
     }
 
     /// What [`serve`] needs besides the listener and the table.
     pub fn serve_options(&self) -> Result<ServeOptions, ServerError> {
         Ok(ServeOptions { security: self.security()?, max_prefetch: self.max_prefetch, shutdown_grace: Duration::from_millis(self.shutdown_grace_ms) })
-    }
-}
-
-/// TLS identity, PEM-encoded.
-#[derive(Clone)]
-pub struct TlsPem {
-    pub cert: Vec<u8>,
-    pub key: Vec<u8>,
-}
-
-/// Transport security: TLS and a bearer token, each optional on loopback, both required
-/// elsewhere.
-#[derive(Clone, Default)]
-pub struct Security {
-    pub tls: Option<TlsPem>,
-    pub token: Option<String>,
-}
-
-impl std::fmt::Debug for Security {
-    // Never print the token or the key.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Security").field("tls", &self.tls.is_some()).field("token", &self.token.is_some()).finish()
     }
 }
 
@@ -223,36 +169,6 @@ impl Default for ServeOptions {
     }
 }
 
-/// Checks `authorization: Bearer <token>` on every request; passes everything when no token
-/// is configured.
-#[derive(Clone)]
-pub struct BearerAuth {
-    expected: Option<Arc<[u8]>>,
-}
-
-impl BearerAuth {
-    pub fn new(token: Option<&str>) -> BearerAuth {
-        BearerAuth { expected: token.map(|t| Arc::from(format!("Bearer {t}").into_bytes())) }
-    }
-}
-
-impl Interceptor for BearerAuth {
-    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
-        let Some(expected) = &self.expected else { return Ok(request) };
-        match request.metadata().get("authorization") {
-            Some(got) if constant_time_eq(got.as_bytes(), expected) => Ok(request),
-            Some(_) => Err(Status::unauthenticated("wrong bearer token")),
-            None => Err(Status::unauthenticated("missing `authorization: Bearer <token>` metadata")),
-        }
-    }
-}
-
-/// Equality whose time does not depend on where the inputs first differ (`subtle`).
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    use subtle::ConstantTimeEq;
-    a.ct_eq(b).into()
-}
-
 /// Serves `table` on `listener` with plain HTTP/2 and no token (loopback listeners only)
 /// until `shutdown` resolves; then open streams end with UNAVAILABLE and it returns.
 pub async fn run(listener: TcpListener, table: Arc<Table>, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), ServerError> {
@@ -263,44 +179,17 @@ pub async fn run(listener: TcpListener, table: Arc<Table>, shutdown: impl Future
 /// without TLS and a token. Does not close the table (the caller owns it and may share it
 /// with other ingest paths).
 pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), ServerError> {
-    let addr = listener.local_addr()?;
-    let security = &options.security;
-    if !addr.ip().is_loopback() && (security.tls.is_none() || security.token.is_none()) {
-        return Err(ServerError::Insecure { addr });
-    }
     let name = table.config().name.clone();
-    let (stop_tx, stop_rx) = watch::channel(false);
-    let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_shutdown(stop_rx.clone());
-    let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let service = InterceptedService::new(service, BearerAuth::new(security.token.as_deref()));
-
-    let mut builder = Server::builder().http2_keepalive_interval(Some(KEEPALIVE_INTERVAL)).http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
-    if let Some(tls) = &security.tls {
-        builder = builder.tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key)))?;
-    }
-    info!(table = %name, %addr, tls = security.tls.is_some(), token = security.token.is_some(), "replay gRPC serving");
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let signal = async move {
-        shutdown.await;
-        info!(table = %name, "shutting down: ending open streams");
-        let _ = stop_tx.send(true);
+    info!(table = %name, "replay gRPC starting");
+    let make = |auth, stop| {
+        let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_shutdown(stop);
+        let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
+        Routes::new(InterceptedService::new(service, auth))
     };
-    let serving = builder.add_service(service).serve_with_incoming_shutdown(incoming, signal);
-    tokio::pin!(serving);
-    let mut stopped = stop_rx;
-    let grace = options.shutdown_grace;
-    tokio::select! {
-        result = &mut serving => result?,
-        _ = async {
-            // Only reachable once the signal fired; the sender lives inside `serving`.
-            if stopped.wait_for(|s| *s).await.is_ok() {
-                tokio::time::sleep(grace).await;
-            } else {
-                std::future::pending::<()>().await;
-            }
-        } => warn!(?grace, "connections still open after the shutdown grace period; closing them"),
-    }
-    Ok(())
+    serve_secured("the replay", listener, &options.security, options.shutdown_grace, make, shutdown).await.map_err(|e| match e {
+        ServeError::Insecure { addr, .. } => ServerError::Insecure { addr },
+        e => ServerError::Serve(e),
+    })
 }
 
 #[cfg(test)]
@@ -336,19 +225,5 @@ mod tests {
         assert_eq!(c.table.capacity, 10);
         assert_eq!(c.table.act_dim, 2);
         assert!(serde_yaml::from_str::<ServerConfig>("listne: 127.0.0.1:6000\n").is_err());
-    }
-
-    #[test]
-    fn bearer_check_needs_the_exact_token() {
-        let mut auth = BearerAuth::new(Some("s3cret"));
-        let with = |v: &str| {
-            let mut r = Request::new(());
-            r.metadata_mut().insert("authorization", v.parse().unwrap());
-            r
-        };
-        assert!(auth.call(with("Bearer s3cret")).is_ok());
-        assert_eq!(auth.call(with("Bearer s3cre")).unwrap_err().code(), tonic::Code::Unauthenticated);
-        assert_eq!(auth.call(Request::new(())).unwrap_err().code(), tonic::Code::Unauthenticated);
-        assert!(BearerAuth::new(None).call(Request::new(())).is_ok());
     }
 }

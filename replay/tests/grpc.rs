@@ -9,10 +9,11 @@ use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use mapless_net::{Security, TlsPem};
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{InsertAck, PriorityUpdate, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest, ServerInfoResponse, TransitionBatch};
 use mapless_proto::{FloatEncoding, MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
-use mapless_replay::server::{Security, ServeOptions, ServerError, TlsPem, run, serve};
+use mapless_replay::server::{ServeOptions, ServerError, run, serve};
 use mapless_replay::{RateLimiterConfig, SamplerConfig, Table, TableConfig, metrics};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, oneshot};

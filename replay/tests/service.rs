@@ -6,10 +6,10 @@ use std::net::SocketAddr;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use mapless_net::shm::{Ack, ShmConfig, ShmWriter};
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{ProtocolVersion, ServerInfoRequest};
 use mapless_proto::{Transition, TransitionBatchBuilder};
-use mapless_replay::shm::{Ack, ShmConfig, ShmWriter};
 
 fn batch(actor: &str, seq: u64, rows: usize) -> mapless_proto::v1::TransitionBatch {
     let mut b = TransitionBatchBuilder::new(3, 2);
@@ -86,5 +86,5 @@ async fn shared_memory_and_grpc_writers_feed_one_table_in_the_service_process() 
     assert!(child.wait().expect("exit").success());
     let _ = std::fs::remove_dir_all(&dir);
     // iceoryx2 keeps one 16-byte management file per domain; ours is private, remove it.
-    mapless_replay::shm::remove_private_domain_files(&format!("svc{id}_"));
+    mapless_net::shm::remove_private_domain_files(&format!("svc{id}_"));
 }

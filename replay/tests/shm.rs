@@ -18,9 +18,10 @@ use std::sync::mpsc::{Receiver, channel};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant};
 
+use mapless_net::shm::{Ack, ShmConfig, ShmError, ShmWriter};
 use mapless_proto::FloatEncoding;
-use mapless_replay::shm::{Ack, ShmConfig, ShmIngest, ShmWriter};
-use mapless_replay::{RateLimiterConfig, ReplayError, Table, TableConfig};
+use mapless_replay::shm::ShmIngest;
+use mapless_replay::{RateLimiterConfig, Table, TableConfig};
 use prost::Message;
 use shm_common::{Plan, run_writer, synthetic_batch};
 
@@ -199,7 +200,7 @@ fn config_defaults_name_the_table_and_bad_values_are_refused() {
         ShmConfig { max_payload_bytes: mapless_proto::MAX_MESSAGE_BYTES + 1, ..ShmConfig::default() },
         ShmConfig { max_in_flight: 0, ..ShmConfig::default() },
     ] {
-        assert!(matches!(bad.validate(), Err(ReplayError::InvalidConfig(_))), "{bad:?}");
+        assert!(matches!(bad.validate(), Err(ShmError::InvalidConfig(_))), "{bad:?}");
     }
 }
 
@@ -207,8 +208,8 @@ fn config_defaults_name_the_table_and_bad_values_are_refused() {
 fn writer_without_a_running_ingest_is_told_the_service_is_closed() {
     let _g = serial();
     let e = ShmWriter::connect(&cfg("nobody"), "a").err().unwrap();
-    assert!(matches!(e, ReplayError::Closed(_)), "{e}");
-    assert_eq!(e.to_status().code(), tonic::Code::Unavailable);
+    assert!(matches!(e, ShmError::Closed(_)), "{e}");
+    assert_eq!(mapless_replay::ReplayError::from(e).to_status().code(), tonic::Code::Unavailable);
 }
 
 #[test]
@@ -258,7 +259,7 @@ fn resending_after_reconnect_is_acked_as_duplicate_and_never_stored_twice() {
     assert_eq!((a.batches, a.rows, a.duplicate_batches), (9, 90, 3));
     assert_eq!(ingest.stats().duplicate_batches, 3);
     // A sequence at or below the last one sent is the caller's mistake, not a resend.
-    assert!(matches!(w.send(&synthetic_batch("r", 9, 10, OBS)), Err(ReplayError::BadRequest(_))));
+    assert!(matches!(w.send(&synthetic_batch("r", 9, 10, OBS)), Err(ShmError::BadRequest(_))));
     ingest.stop();
 }
 
@@ -345,7 +346,7 @@ fn killed_ingest_process_is_cleaned_up_by_a_fresh_ingest_and_writers_resend_to_i
     // Sent into the dead server's queue: never answered. The writer notices the dead server.
     w.send(&synthetic_batch("k", 6, 32, OBS)).unwrap();
     let e = w.wait_acks(in_secs(20)).unwrap_err();
-    assert!(matches!(e, ReplayError::Closed(_)), "{e}");
+    assert!(matches!(e, ShmError::Closed(_)), "{e}");
 
     // The dead server still holds the service's one server slot until a fresh ingest cleans up.
     let t = table();
@@ -371,7 +372,7 @@ fn stopped_ingest_makes_writers_reconnect_and_resend_to_the_next_one() {
     w.wait_acks(in_secs(20)).unwrap();
     first.stop();
     w.send(&synthetic_batch("s", 2, 8, OBS)).unwrap(); // taken; nobody serves it
-    assert!(matches!(w.poll_acks(), Err(ReplayError::Closed(_))));
+    assert!(matches!(w.poll_acks(), Err(ShmError::Closed(_))));
     assert_eq!(w.unacked(), 1);
     let second = ShmIngest::spawn(Arc::clone(&t), c.clone()).unwrap();
     w.reconnect().unwrap();
@@ -436,7 +437,7 @@ fn oversized_batch_is_refused_by_the_writer_with_the_limit_in_the_message() {
     let small = ShmConfig { max_payload_bytes: 8192, initial_payload_bytes: 8192, ..c.clone() };
     let mut w = ShmWriter::connect(&small, "o").unwrap();
     let e = w.send(&synthetic_batch("o", 1, 100, OBS)).unwrap_err();
-    assert!(matches!(&e, ReplayError::BadRequest(m) if m.contains("max_payload_bytes = 8192")), "{e}");
+    assert!(matches!(&e, ShmError::BadRequest(m) if m.contains("max_payload_bytes = 8192")), "{e}");
     assert_eq!(w.unacked(), 0);
     w.send(&synthetic_batch("o", 1, 10, OBS)).unwrap();
     assert_eq!(w.wait_acks(in_secs(20)).unwrap().len(), 1);
@@ -454,7 +455,7 @@ fn second_writer_for_an_actor_is_refused_until_the_first_disconnects() {
     let mut second = ShmWriter::connect(&c, "x").unwrap();
     second.send(&synthetic_batch("x", 2, 8, OBS)).unwrap();
     let e = second.wait_acks(in_secs(20)).unwrap_err();
-    assert!(matches!(&e, ReplayError::BadRequest(m) if m.contains("another connected ShmWriter")), "{e}");
+    assert!(matches!(&e, ShmError::BadRequest(m) if m.contains("another connected ShmWriter")), "{e}");
     assert_eq!(second.unacked(), 1);
     assert_eq!(ingest.stats().aborted_batches, 1);
     drop(first);
@@ -484,7 +485,7 @@ fn insert_blocked_by_the_rate_limiter_delays_the_ack_without_dropping_it() {
         w.send(&synthetic_batch("rl", seq, 100, OBS)).unwrap();
     }
     let e = w.wait_acks(Instant::now() + Duration::from_millis(600)).unwrap_err();
-    assert!(matches!(e, ReplayError::DeadlineExceeded { .. }), "{e}");
+    assert!(matches!(e, ShmError::DeadlineExceeded { .. }), "{e}");
     assert_eq!(stored(&w.poll_acks().unwrap()), [(1, false), (2, false)]);
     assert!(ingest.stats().insert_stalls >= 2, "{:?}", ingest.stats());
     // Other writers are not wedged either: their batches queue behind the limiter too, but

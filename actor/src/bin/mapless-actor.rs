@@ -39,9 +39,9 @@ struct Cli {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    mapless_replay::logging::init(cli.log_json, "info,iceoryx2=warn");
+    mapless_net::logging::init(cli.log_json, "info,iceoryx2=warn");
     let actor_id = incarnation_id(cli.index);
-    mapless_replay::logging::identify(&[("run", &cli.run), ("role", "actor"), ("actor_id", &actor_id)]);
+    mapless_net::logging::identify(&[("run", &cli.run), ("role", "actor"), ("actor_id", &actor_id)]);
     match main_inner(&cli, &actor_id) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -58,13 +58,7 @@ fn main_inner(cli: &Cli, actor_id: &str) -> anyhow::Result<()> {
     let on_signal = Arc::clone(&stop);
     std::thread::Builder::new().name("signals".into()).spawn(move || {
         let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else { return };
-        rt.block_on(async {
-            let Ok(mut term) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) else { return };
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-            }
-        });
+        rt.block_on(mapless_net::signals::termination());
         tracing::info!("signal received; stopping");
         on_signal.store(true, Ordering::Relaxed);
     })?;

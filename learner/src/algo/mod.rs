@@ -142,7 +142,7 @@ impl Agent {
             return Err(LearnerError::InvalidConfig { field: "obs_dim/act_dim", reason: format!("are {obs_dim}/{act_dim}; both must be ≥ 1") });
         }
         crate::malloc::retain_freed_memory();
-        let device = crate::Device::parse(&cfg.device)?.to_tch();
+        let device = crate::device::ToTch::to_tch(crate::device::available(&cfg.device)?);
         let common = Common::new(cfg.clone(), obs_dim, act_dim, device);
         Ok(match cfg.algorithm {
             AlgorithmKind::Ddpg => Self::Ddpg(Ddpg::new(common)?),

@@ -4,9 +4,9 @@
 
 use std::time::{Duration, Instant};
 
+use mapless_net::shm::{Ack, ShmConfig, ShmError, ShmWriter};
 use mapless_proto::v1::{ProtocolVersion, TransitionBatch};
 use mapless_replay::ReplayError;
-use mapless_replay::shm::{Ack, ShmConfig, ShmWriter};
 
 /// A valid batch of `rows` transitions with `obs_dim`-float observations and 2-float
 /// actions; reward i and step i for row i, policy version = sequence.
@@ -88,21 +88,21 @@ pub fn run_writer(cfg: &ShmConfig, actor: &str, plan: &Plan, mut on_ack: impl Fn
         loop {
             match w.send(&batch) {
                 Ok(()) => break,
-                Err(ReplayError::Closed(_)) if start.elapsed() < patience => {
+                Err(ShmError::Closed(_)) if start.elapsed() < patience => {
                     report.reconnects += 1;
                     std::thread::sleep(Duration::from_millis(20));
                     let _ = w.reconnect();
                 }
-                Err(e) => return Err(e),
+                Err(e) => return Err(e.into()),
             }
         }
         match w.poll_acks() {
             Ok(acks) => tally(acks, &mut report),
-            Err(ReplayError::Closed(_)) if start.elapsed() < patience => {
+            Err(ShmError::Closed(_)) if start.elapsed() < patience => {
                 report.reconnects += 1;
                 let _ = w.reconnect();
             }
-            Err(e) => return Err(e),
+            Err(e) => return Err(e.into()),
         }
         if !pace.is_zero() {
             std::thread::sleep(pace);
@@ -114,12 +114,12 @@ pub fn run_writer(cfg: &ShmConfig, actor: &str, plan: &Plan, mut on_ack: impl Fn
                 tally(acks, &mut report);
                 break;
             }
-            Err(ReplayError::Closed(_)) if start.elapsed() < patience => {
+            Err(ShmError::Closed(_)) if start.elapsed() < patience => {
                 report.reconnects += 1;
                 std::thread::sleep(Duration::from_millis(20));
                 let _ = w.reconnect();
             }
-            Err(e) => return Err(e),
+            Err(e) => return Err(e.into()),
         }
     }
     report.elapsed = start.elapsed();
@@ -132,8 +132,8 @@ pub fn connect_patiently(cfg: &ShmConfig, actor: &str, patience: Duration) -> Re
     loop {
         match ShmWriter::connect(cfg, actor) {
             Ok(w) => return Ok(w),
-            Err(ReplayError::Closed(_)) if start.elapsed() < patience => std::thread::sleep(Duration::from_millis(20)),
-            Err(e) => return Err(e),
+            Err(ShmError::Closed(_)) if start.elapsed() < patience => std::thread::sleep(Duration::from_millis(20)),
+            Err(e) => return Err(e.into()),
         }
     }
 }

@@ -19,7 +19,8 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::{Parser, ValueEnum};
-use mapless_replay::server::{ServerConfig, TlsFiles, serve};
+use mapless_net::TlsFiles;
+use mapless_replay::server::{ServerConfig, serve};
 use mapless_replay::shm::ShmIngest;
 use mapless_replay::{SamplerConfig, Table, metrics};
 use tokio::net::TcpListener;
@@ -161,36 +162,8 @@ impl Cli {
 }
 
 fn init_logging(json: bool) {
-    mapless_replay::logging::init(json, "info");
-    mapless_replay::logging::identify(&[("role", "replay")]);
-}
-
-/// Resolves on the first SIGINT or SIGTERM.
-async fn termination() {
-    let ctrl_c = async {
-        if let Err(e) = tokio::signal::ctrl_c().await {
-            warn!(error = %e, "cannot listen for SIGINT");
-            std::future::pending::<()>().await;
-        }
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(e) => {
-                warn!(error = %e, "cannot listen for SIGTERM");
-                std::future::pending::<()>().await;
-            }
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => info!("SIGINT received"),
-        _ = term => info!("SIGTERM received"),
-    }
+    mapless_net::logging::init(json, "info");
+    mapless_net::logging::identify(&[("role", "replay")]);
 }
 
 fn main() -> ExitCode {
@@ -281,7 +254,7 @@ async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -
     let on_signal = Arc::clone(&stop_tx);
     tokio::spawn(
         async move {
-            termination().await;
+            mapless_net::signals::termination().await;
             on_signal.send_replace(true);
         }
         .in_current_span(),

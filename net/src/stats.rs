@@ -12,7 +12,7 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::net::GrpcEndpoint;
+use crate::endpoint::GrpcEndpoint;
 
 /// Checks an [`EpisodeStats`] record against the contract (stats.proto).
 pub fn validate(e: &EpisodeStats) -> Result<(), String> {

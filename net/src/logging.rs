@@ -8,9 +8,9 @@
 //! of a text line, `"run":…,"role":…,"actor_id":…` as top-level keys of a JSON line.
 //!
 //! ```no_run
-//! mapless_replay::logging::init(false, "info");
-//! mapless_replay::logging::identify(&[("run", "env1-sac"), ("role", "replay")]);
-//! tracing::info!("listening");   // … INFO mapless_replay: listening run=env1-sac role=replay
+//! mapless_net::logging::init(false, "info");
+//! mapless_net::logging::identify(&[("run", "env1-sac"), ("role", "replay")]);
+//! tracing::info!("listening");   // … INFO mapless_net: listening run=env1-sac role=replay
 //! ```
 
 use std::fmt;

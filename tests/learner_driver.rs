@@ -2,6 +2,9 @@
 //! publishes versioned weights a pure-Rust actor can load, checkpoints, and resumes with its
 //! weights version intact.
 
+mod common;
+use common::in_process::InProcess;
+
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
@@ -9,7 +12,6 @@ use mapless_actor::{ActMode, Policy};
 use mapless_learner::algo::Agent;
 use mapless_learner::config::{AlgorithmKind, LearnerConfig};
 use mapless_learner::driver::{Driver, DriverConfig};
-use mapless_learner::source::InProcess;
 use mapless_learner::weights::WeightsPublisher;
 use mapless_proto::{Transition, TransitionBatchBuilder};
 use mapless_replay::config::{RateLimiterConfig, SamplerConfig, TableConfig};

@@ -10,8 +10,9 @@
 //! - `cargo::rustc-link-arg` applies only to the targets of the package that emits it (a
 //!   library's build script cannot give its dependents an rpath).
 //!
-//! So every package that links an executable against libtorch (this one for its tests and
-//! benches, `cli` for the `mapless` binary) needs `torch-sys.workspace = true` under
+//! So every package that links an executable against libtorch (`learner` for the
+//! `mapless-learner` binary, its tests and benches; `tests` for the learner's integration tests)
+//! needs `torch-sys.workspace = true` under
 //! `[dependencies]` and a copy of this file. It is written to be copied verbatim.
 //!
 //! It also keeps libtorch's CUDA backend in the link. Nothing in tch refers to a symbol of

@@ -1,4 +1,4 @@
-//! `mapless learner`: the learner process of a cluster — samples from the replay service over
+//! `mapless-learner`: the learner process of a cluster — samples from the replay service over
 //! gRPC, updates, publishes versioned weights on its own gRPC service, checkpoints, writes
 //! TensorBoard scalars, and prints one JSON status line per second on stdout (what the
 //! supervisor of `mapless train` reads).
@@ -8,65 +8,99 @@
 //!                                                  └─► WeightsService (127.0.0.1 by default) ══► actors
 //! ```
 //! SIGINT/SIGTERM: stop after the current update, publish, checkpoint, exit 0.
+//!
+//! `mapless-learner --config learner.yaml [--run NAME]` runs it (`mapless train` starts it so);
+//! `mapless-learner bench` measures updates per second (what `mapless bench learner` runs).
+//! The only executable that links libtorch.
 
-use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result};
-use mapless_learner::algo::Agent;
-use mapless_learner::config::LearnerConfig;
-use mapless_learner::driver::{Driver, DriverConfig};
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand};
+use mapless_learner::algo::{Agent, bench_updates};
+use mapless_learner::config::{AlgorithmKind, LearnerConfig, LearnerServiceConfig};
+use mapless_learner::driver::Driver;
 use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig};
-use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve, write_safetensors_file};
-use mapless_learner::{TorchThreads, checkpoint};
-use mapless_replay::server::{ServerConfig, TlsFiles};
-use serde::{Deserialize, Serialize};
+use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve};
+use mapless_learner::{Device, TorchThreads, checkpoint, device};
+use mapless_net::metrics::{self, bench_report};
+use mapless_net::serve::Security;
+use mapless_proto::weights_file::write_safetensors_file;
+use serde::Serialize;
 
-/// Everything the learner process needs (`mapless train` writes it as `learner.yaml`).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct LearnerServiceConfig {
-    /// Algorithm and hyperparameters.
-    pub learner: LearnerConfig,
-    /// Publishing, checkpoint and metrics cadence.
-    #[serde(default)]
-    pub driver: DriverConfig,
-    /// Observation and action lengths (the replay table's).
-    pub obs_dim: usize,
-    pub act_dim: usize,
-    /// The replay service, e.g. `http://127.0.0.1:50051`.
-    pub replay: String,
-    /// Where the weights service listens (`127.0.0.1:0`: any free port, printed on stdout).
-    pub weights_listen: SocketAddr,
-    /// Checkpoints go here; with `resume`, the newest one is loaded at start.
-    pub checkpoint_dir: PathBuf,
-    /// TensorBoard event files.
-    pub tensorboard_dir: Option<PathBuf>,
-    /// Newest published policy, for evaluation and deployment (`.safetensors`, written at
-    /// start, every [`POLICY_FILE_EVERY`] while the weights version advances, and at exit).
-    pub policy_file: Option<PathBuf>,
-    /// Continue from the newest checkpoint in `checkpoint_dir` when there is one.
-    #[serde(default)]
-    pub resume: bool,
-    /// libtorch threads (intra-op); inter-op is 1.
-    #[serde(default = "one")]
-    pub threads: usize,
-    /// The weights service's TLS certificate and key (required, with `auth_token_file`, on a
-    /// non-loopback `weights_listen`).
-    #[serde(default)]
-    pub tls: Option<TlsFiles>,
-    /// File holding the bearer token subscribers must send.
-    #[serde(default)]
-    pub auth_token_file: Option<PathBuf>,
-    /// CA and token for reaching a replay service on another host.
-    #[serde(default)]
-    pub replay_security: mapless_actor::run::Security,
-    /// Prometheus `/metrics` address (loopback); none: off.
-    #[serde(default)]
-    pub metrics_listen: Option<SocketAddr>,
+#[derive(Parser)]
+#[command(
+    name = "mapless-learner",
+    version,
+    about = "The learner process of a mapless cluster (libtorch): samples from the replay, updates, publishes weights.",
+    args_conflicts_with_subcommands = true
+)]
+struct Cli {
+    /// Learner config (YAML; `mapless train` writes `run/learner.yaml`).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Run name for the log lines.
+    #[arg(long, default_value = "")]
+    run: String,
+    /// Log JSON lines instead of text.
+    #[arg(long, global = true)]
+    log_json: bool,
+    #[command(subcommand)]
+    cmd: Option<Cmd>,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Gradient updates per second for DDPG, TD3 and SAC at the paper's sizes (17-float
+    /// observations, 2 actions, 2×256 hidden, minibatch 128), with 1 and 2 threads
+    /// (`mapless bench learner` runs this).
+    Bench(BenchArgs),
+}
+
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// Seconds per configuration.
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// `cpu`, `cuda` or `cuda:N`.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// libtorch intra-op thread counts to measure.
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    threads: Vec<usize>,
+    /// Algorithms to measure.
+    #[arg(long, value_delimiter = ',', default_value = "ddpg,td3,sac")]
+    algos: Vec<String>,
+    /// Also measure with the twin critics evaluated one after the other (TD3, SAC; the
+    /// autograd path).
+    #[arg(long)]
+    unfused: bool,
+    /// Also measure the libtorch autograd path (`fused_update: false`), for comparison
+    /// with the default fused CPU update.
+    #[arg(long)]
+    autograd: bool,
+    /// One JSON object per line: {"bench", "config", "value", "unit"}.
+    #[arg(long)]
+    json: bool,
+}
+
+fn main() {
+    let cli = Cli::parse();
+    // Benchmarks would drown their figures in info lines.
+    mapless_net::logging::init(cli.log_json, if cli.cmd.is_some() { "warn" } else { "info" });
+    mapless_net::logging::identify(&[("run", &cli.run), ("role", "learner")]);
+    let result = match (&cli.cmd, &cli.config) {
+        (Some(Cmd::Bench(a)), _) => bench(a),
+        (None, Some(config)) => run(config),
+        (None, None) => Err(anyhow::anyhow!("give --config FILE (the learner's YAML; `mapless train` writes run/learner.yaml), or a subcommand")),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
 }
 
 /// What `/metrics` shows.
@@ -81,7 +115,7 @@ struct Gauges {
 
 impl Gauges {
     fn render(&self) -> String {
-        use mapless_actor::metrics::line;
+        use metrics::line;
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
         let mut out = String::new();
         line(&mut out, "mapless_learner_updates_total", "counter", "Gradient updates done.", g(&self.updates));
@@ -91,10 +125,6 @@ impl Gauges {
         line(&mut out, "mapless_learner_replay_reconnects_total", "counter", "Replay sample streams reopened.", g(&self.reconnects));
         out
     }
-}
-
-fn one() -> usize {
-    1
 }
 
 /// Status line printed every second.
@@ -143,7 +173,7 @@ fn has_checkpoint(dir: &Path) -> bool {
 }
 
 /// Runs the learner process until SIGINT/SIGTERM.
-pub fn run(config_path: &Path) -> Result<()> {
+fn run(config_path: &Path) -> Result<()> {
     let text = std::fs::read_to_string(config_path).with_context(|| format!("reading {}", config_path.display()))?;
     let cfg: LearnerServiceConfig = serde_yaml::from_str(&text).with_context(|| format!("parsing {}", config_path.display()))?;
     cfg.learner.validate()?;
@@ -155,7 +185,7 @@ pub fn run(config_path: &Path) -> Result<()> {
     {
         let stop = Arc::clone(&stop);
         rt.spawn(async move {
-            crate::signals::termination().await;
+            mapless_net::signals::termination().await;
             tracing::info!("signal received; stopping after this update");
             stop.store(true, Ordering::Relaxed);
         });
@@ -192,9 +222,9 @@ pub fn run(config_path: &Path) -> Result<()> {
     let listener = rt.block_on(tokio::net::TcpListener::bind(cfg.weights_listen)).with_context(|| format!("binding the weights service on {}", cfg.weights_listen))?;
     let addr = listener.local_addr()?;
     let mut shutdown = stop_rx.clone();
-    let security = ServerConfig { tls: cfg.tls.clone(), auth_token_file: cfg.auth_token_file.clone(), ..ServerConfig::default() }.security()?;
-    if !addr.ip().is_loopback() && (security.tls.is_none() || security.token.is_none()) {
-        anyhow::bail!("weights_listen {addr} is not loopback: set tls (cert, key) and auth_token_file, or listen on 127.0.0.1");
+    let security = Security::read(cfg.tls.as_ref(), cfg.auth_token_file.as_deref())?;
+    if !security.allows(&addr) {
+        bail!("weights_listen {addr} is not loopback: set tls (cert, key) and auth_token_file, or listen on 127.0.0.1");
     }
     let options = ServeOptions { security, ..ServeOptions::default() };
     let server = rt.spawn(serve(listener, publisher, options, async move {
@@ -203,7 +233,7 @@ pub fn run(config_path: &Path) -> Result<()> {
     let gauges = Arc::new(Gauges::default());
     if let Some(m) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        let bound = mapless_actor::metrics::spawn(&rt, m, Arc::new(move || g.render()), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
+        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render()), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
         println!("metrics on http://{bound}/metrics");
     }
     println!("weights on {addr}");
@@ -259,5 +289,74 @@ pub fn run(config_path: &Path) -> Result<()> {
     let _ = stop_tx.send(true);
     let _ = rt.block_on(server);
     rt.shutdown_timeout(Duration::from_secs(2));
+    Ok(())
+}
+
+/// `mapless-learner bench`: updates per second, and the matrix-product ceiling they are held
+/// against (`mapless_learner::ceiling`).
+fn bench(a: &BenchArgs) -> Result<()> {
+    let BenchArgs { seconds, ref device, ref threads, ref algos, unfused, autograd, json } = *a;
+    if !(seconds > 0.0) || threads.is_empty() || threads.contains(&0) {
+        bail!("--seconds must be > 0 and every --threads count ≥ 1");
+    }
+    // Fails here, with the reason, when the device is not usable on this machine.
+    device::available(device)?;
+    let (obs_dim, act_dim) = (17usize, 2usize);
+    let kinds = algos
+        .iter()
+        .map(|a| match a.trim().to_ascii_lowercase().as_str() {
+            "ddpg" => Ok(AlgorithmKind::Ddpg),
+            "td3" => Ok(AlgorithmKind::Td3),
+            "sac" => Ok(AlgorithmKind::Sac),
+            other => bail!("unknown algorithm `{other}` (expected ddpg, td3 or sac)"),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    if !json {
+        println!("learner updates per second on {device}: obs {obs_dim}, act {act_dim}, 2×256 hidden, minibatch 128, {seconds} s each");
+    }
+    let dev = device::available(device)?;
+    for &t in threads.iter() {
+        TorchThreads { intra_op: t, inter_op: 1 }.apply()?;
+        // The bound every algorithm is measured against: libtorch's product of the hidden
+        // layer's shape, here, with these threads (mapless_learner::ceiling).
+        let base = LearnerConfig::default();
+        let shape = format!("{}x{}x{}", base.batch_size, base.hidden_width, base.hidden_width);
+        let mut f32_gflops = 0.0;
+        for (name, bf16) in [("f32", false), ("bf16", true)] {
+            let g = mapless_learner::ceiling::matmul_gflops(base.batch_size as i64, base.hidden_width, bf16, dev, seconds.min(2.0))?;
+            if name == "f32" {
+                f32_gflops = g;
+            }
+            bench_report(json, "learner.matmul_gflops", serde_json::json!({"device": device, "threads": t, "dtype": name, "shape": shape}), g, "GFLOP/s");
+        }
+        for &kind in &kinds {
+            // (fused_update, fused_critics): the default first, then what was asked for.
+            let mut variants = vec![(true, true)];
+            if autograd {
+                variants.push((false, true));
+            }
+            if unfused && kind != AlgorithmKind::Ddpg {
+                variants.push((false, false));
+            }
+            for (fused_update, fused) in variants {
+                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, ..LearnerConfig::default() };
+                // libtorch fixes the inter-op pool once per process; only the intra-op count varies.
+                let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
+                // The fused update runs on the CPU only; elsewhere the autograd path runs.
+                let path = if fused_update && dev == Device::Cpu { "fused" } else { "autograd" };
+                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "update": path, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
+                bench_report(json, "learner.updates_per_s", config, v, "updates/s");
+                if fused_update {
+                    // Matrix-product work per update, and the updates/s that f32 products alone
+                    // would allow at the rate just measured: an estimate of the most f32 code can do.
+                    let flops = mapless_learner::ceiling::update_flops(&cfg, obs_dim, act_dim);
+                    let bound = f32_gflops * 1e9 / flops;
+                    let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "flop_per_update": flops, "f32_matmul_gflops": (f32_gflops * 10.0).round() / 10.0});
+                    bench_report(json, "learner.f32_ceiling_updates_per_s", config.clone(), bound, "updates/s");
+                    bench_report(json, "learner.share_of_f32_ceiling", config, v / bound, "fraction");
+                }
+            }
+        }
+    }
     Ok(())
 }

@@ -1,5 +1,6 @@
 //! A single-process training loop on Pendulum-v1 with the real replay table: the harness
-//! the learning and resume tests share.
+//! the learning and resume tests share; and [`in_process::InProcess`], a replay source on a
+//! table in this process.
 //!
 //! ```text
 //!   Pendulum ──transition──► TransitionBatchBuilder ──insert──► mapless_replay::Table
@@ -8,6 +9,8 @@
 //! ```
 
 #![allow(dead_code)]
+
+pub mod in_process;
 
 use std::time::Instant;
 

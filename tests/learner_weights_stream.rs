@@ -10,13 +10,13 @@ use std::time::Duration;
 
 use mapless_learner::LearnerError;
 use mapless_learner::source::GrpcEndpoint;
-use mapless_learner::weights::{
-    self, META_VERSION, ServeOptions, WeightsPublisher, WeightsSubscription, read_safetensors_file, snapshot_from_safetensors, snapshot_from_tensors, snapshot_to_safetensors, subscribe,
-    tensors_from_snapshot, write_safetensors_file,
-};
+use mapless_learner::weights::{self, ServeOptions, WeightsPublisher, snapshot_from_tensors, tensors_from_snapshot};
+use mapless_net::NetError;
+use mapless_net::Security;
+use mapless_net::weights::{WeightsSubscription, subscribe};
 use mapless_proto::v1::weights_service_client::WeightsServiceClient;
 use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot};
-use mapless_replay::server::Security;
+use mapless_proto::weights_file::{META_VERSION, WeightsFileError, read_safetensors_file, snapshot_from_safetensors, snapshot_to_safetensors, write_safetensors_file};
 use tch::{Device, Kind, Tensor};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
@@ -191,7 +191,7 @@ async fn shutdown_ends_open_streams_with_unavailable() {
 
     h.stop.take().expect("running").send(()).expect("server running");
     match within("end of stream", stream.next()).await {
-        Err(LearnerError::Grpc { code, message, .. }) => {
+        Err(NetError::Grpc { code, message, .. }) => {
             assert_eq!(code, Code::Unavailable, "{message}");
             assert!(message.contains("shutting down"), "{message}");
         }
@@ -207,7 +207,7 @@ async fn bearer_token_is_required_when_configured() {
     let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()) }, ..ServeOptions::default() };
     let h = Harness::start(&publisher, options).await;
     match within("subscribe without token", subscribe(&h.endpoint(), 0, "")).await {
-        Err(LearnerError::Grpc { code, .. }) => assert_eq!(code, Code::Unauthenticated),
+        Err(NetError::Grpc { code, .. }) => assert_eq!(code, Code::Unauthenticated),
         other => panic!("expected UNAUTHENTICATED, got {other:?}"),
     }
     let endpoint = h.endpoint().with_token("open-sesame");
@@ -306,9 +306,9 @@ fn snapshot_round_trips_through_a_safetensors_file_bit_exactly() {
     assert_eq!(view.shape(), &[2, 4]);
 }
 
-fn expect_invalid(result: Result<WeightsSnapshot, LearnerError>, needle: &str) {
+fn expect_invalid(result: Result<WeightsSnapshot, WeightsFileError>, needle: &str) {
     match result {
-        Err(e @ LearnerError::InvalidWeights { .. }) => {
+        Err(e @ WeightsFileError::Invalid { .. }) => {
             assert!(e.to_string().contains(needle), "error should mention `{needle}`: {e}");
         }
         other => panic!("expected InvalidWeights mentioning `{needle}`, got {other:?}"),
@@ -345,7 +345,7 @@ fn corrupt_safetensors_files_are_clear_errors() {
     // A missing file names the path.
     let missing = dir.path().join("missing.safetensors");
     let err = read_safetensors_file(&missing).expect_err("missing file");
-    assert!(matches!(err, LearnerError::FileIo { .. }) && err.to_string().contains("missing.safetensors"), "{err}");
+    assert!(matches!(err, WeightsFileError::Io { .. }) && err.to_string().contains("missing.safetensors"), "{err}");
 
     // Writing refuses invalid snapshots and reserved metadata keys.
     let mut reserved = awkward_snapshot();

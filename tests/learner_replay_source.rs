@@ -3,15 +3,19 @@
 //! server restart, clear stops on errors retrying cannot fix, TLS + bearer token, and the
 //! in-process source giving the same shapes.
 
+mod common;
+use common::in_process::InProcess;
+
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use mapless_learner::LearnerError;
-use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig, InProcess, ReplaySource, sample_stream_window};
+use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig, ReplaySource, sample_stream_window};
+use mapless_net::{Security, TlsPem};
 use mapless_proto::v1::{SampledBatch, TransitionBatch};
 use mapless_proto::{Transition, TransitionBatchBuilder};
-use mapless_replay::server::{Security, ServeOptions, ServerError, TlsPem, serve};
+use mapless_replay::server::{ServeOptions, ServerError, serve};
 use mapless_replay::{RateLimiterConfig, SamplerConfig, Table, TableConfig};
 use prost::Message;
 use tokio::net::TcpListener;
@@ -390,5 +394,5 @@ fn in_process_source_returns_the_same_shapes_as_the_grpc_source() {
 
     // A closed table is an error, not a hang or a panic.
     table.close();
-    assert!(matches!(local.next_batch(), Err(LearnerError::ReplayTable(_))));
+    assert!(matches!(local.next_batch(), Err(LearnerError::Replay(_))));
 }

@@ -5,8 +5,8 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
-use mapless_actor::net::GrpcEndpoint;
 use mapless_actor::sink::{GrpcSink, Sink};
+use mapless_net::GrpcEndpoint;
 use mapless_proto::v1::TransitionBatch;
 use mapless_proto::{Transition, TransitionBatchBuilder};
 use mapless_replay::{Table, TableConfig};

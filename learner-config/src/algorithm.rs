@@ -14,7 +14,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::LearnerError;
+use crate::ConfigError;
 
 /// Which of the paper's three algorithms (§II-A/B/C).
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
@@ -50,24 +50,24 @@ impl AlgorithmKind {
 }
 
 impl std::str::FromStr for AlgorithmKind {
-    type Err = LearnerError;
-    fn from_str(s: &str) -> Result<Self, LearnerError> {
+    type Err = ConfigError;
+    fn from_str(s: &str) -> Result<Self, ConfigError> {
         match s.trim().to_ascii_lowercase().as_str() {
             "ddpg" => Ok(Self::Ddpg),
             "td3" => Ok(Self::Td3),
             "sac" => Ok(Self::Sac),
-            other => Err(LearnerError::InvalidConfig { field: "algorithm", reason: format!("is `{other}`; expected `ddpg`, `td3` or `sac`") }),
+            other => Err(ConfigError::InvalidConfig { field: "algorithm", reason: format!("is `{other}`; expected `ddpg`, `td3` or `sac`") }),
         }
     }
 }
 
-/// Everything an [`Agent`](crate::algo::Agent) is built from. Stored in every checkpoint.
+/// Everything the learner's agent (`mapless_learner::algo::Agent`) is built from. Stored in every checkpoint.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct LearnerConfig {
     /// Which algorithm [paper: all three are compared].
     pub algorithm: AlgorithmKind,
-    /// `cpu`, `cuda` or `cuda:N` (see [`crate::Device`]).
+    /// `cpu`, `cuda` or `cuda:N` (see [`crate::Device`]; whether libtorch can use it is checked where the learner starts).
     pub device: String,
     /// Seed of the learner's random streams: initial weights, SAC's reparameterisation
     /// noise, TD3's target-smoothing noise, exploration noise.
@@ -122,7 +122,7 @@ impl Default for LearnerConfig {
             algorithm: AlgorithmKind::Sac,
             device: "cpu".into(),
             seed: 0,
-            hidden_width: crate::nets::DEFAULT_HIDDEN_WIDTH,
+            hidden_width: crate::DEFAULT_HIDDEN_WIDTH,
             gamma: 0.995,
             actor_lr: 5e-5,
             critic_lr: 5e-4,
@@ -181,12 +181,12 @@ pub enum ExplorationNoise {
 }
 
 impl ExplorationNoise {
-    fn validate(&self, field: &'static str) -> Result<(), LearnerError> {
+    fn validate(&self, field: &'static str) -> Result<(), ConfigError> {
         let ok = match *self {
             Self::Gaussian { sigma } => sigma.is_finite() && sigma >= 0.0,
             Self::OrnsteinUhlenbeck { theta, sigma, mean, dt } => theta.is_finite() && theta >= 0.0 && sigma.is_finite() && sigma >= 0.0 && mean.is_finite() && dt.is_finite() && dt > 0.0,
         };
-        if ok { Ok(()) } else { Err(LearnerError::InvalidConfig { field, reason: format!("{self:?}: σ, θ must be finite and ≥ 0, dt > 0") }) }
+        if ok { Ok(()) } else { Err(ConfigError::InvalidConfig { field, reason: format!("{self:?}: σ, θ must be finite and ≥ 0, dt > 0") }) }
     }
 }
 
@@ -259,8 +259,8 @@ impl Default for SacConfig {
 
 impl LearnerConfig {
     /// Checks every field's domain; the error names the field.
-    pub fn validate(&self) -> Result<(), LearnerError> {
-        let bad = |field: &'static str, reason: String| Err(LearnerError::InvalidConfig { field, reason });
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &'static str, reason: String| Err(ConfigError::InvalidConfig { field, reason });
         let unit = |x: f64| x.is_finite() && (0.0..=1.0).contains(&x);
         let positive = |x: f64| x.is_finite() && x > 0.0;
         self.device.parse::<crate::Device>()?;
@@ -359,6 +359,6 @@ mod tests {
         assert!(c.validate().unwrap_err().to_string().contains("`td3.policy_delay`"));
         let mut c = LearnerConfig::default();
         c.device = "tpu".into();
-        assert!(matches!(c.validate().unwrap_err(), LearnerError::InvalidDevice { .. }));
+        assert!(matches!(c.validate().unwrap_err(), ConfigError::InvalidDevice { .. }));
     }
 }

@@ -8,7 +8,7 @@ use mapless_proto::v1::weights_service_client::WeightsServiceClient;
 use mapless_proto::v1::{ProtocolVersion, SubscribeRequest, WeightsSnapshot};
 use tokio::sync::watch;
 
-use crate::net::{GrpcEndpoint, NetError};
+use crate::endpoint::{GrpcEndpoint, NetError};
 
 fn invalid(origin: impl Into<String>, reason: impl Into<String>) -> NetError {
     NetError::Invalid { origin: origin.into(), reason: reason.into() }

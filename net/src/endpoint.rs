@@ -1,5 +1,5 @@
 //! Reaching the cluster's gRPC services (replay, weights, stats): where they are, TLS and the
-//! bearer token. Shared by the actors and the learner; libtorch-free.
+//! bearer token. Used by the actors, the learner and the supervisor.
 
 use std::path::Path;
 use std::time::Duration;
@@ -230,4 +230,32 @@ pub fn error_chain(error: &dyn std::error::Error) -> String {
         source = cause.source();
     }
     text
+}
+
+/// Client-side TLS and token settings for services on other hosts (optional on loopback), as
+/// they appear in a config file: the files are read when an endpoint is made from them.
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClientSecurity {
+    /// PEM CA certificate to trust (switches `http://` to `https://`).
+    pub tls_ca_file: Option<std::path::PathBuf>,
+    /// Name to check the servers' certificates against (default: the URI's host).
+    pub tls_domain: Option<String>,
+    /// File holding the bearer token.
+    pub token_file: Option<std::path::PathBuf>,
+}
+
+impl ClientSecurity {
+    /// `uri` with this TLS and token, checked as far as it can be without dialling.
+    pub fn endpoint(&self, uri: &str) -> Result<GrpcEndpoint, NetError> {
+        let mut e = GrpcEndpoint::new(uri);
+        if let Some(ca) = &self.tls_ca_file {
+            e = e.with_tls_ca_file(ca, self.tls_domain.clone())?;
+        }
+        if let Some(t) = &self.token_file {
+            e = e.with_token_file(t)?;
+        }
+        e.check()?;
+        Ok(e)
+    }
 }

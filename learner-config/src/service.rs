@@ -1,0 +1,85 @@
+//! The learner process's settings: its cadence ([`DriverConfig`]) and everything the
+//! `mapless-learner` binary reads from its `learner.yaml` ([`LearnerServiceConfig`]).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+use crate::LearnerConfig;
+
+/// How often the loop publishes, checkpoints and reports. The defaults are what `mapless train`
+/// runs with; none is the paper's (its MATLAB agent acts, learns and keeps its state in one
+/// process), each says why.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct DriverConfig {
+    /// Publish the policy every K updates (K ≥ 1). Actors act with weights at most K updates old
+    /// [ours: 50; the paper acts with the newest weights; at the ~400 updates/s of a 2-core
+    /// machine a published policy is about 0.1 s old].
+    pub publish_every: u64,
+    /// Write a checkpoint every N updates; 0 = only when asked (and at the end of `run`)
+    /// [ours: 20,000, under a minute of learning at ~400 updates/s is what a crash can lose].
+    pub checkpoint_every: u64,
+    /// Checkpoints kept on disk [`crate::DEFAULT_CHECKPOINT_KEEP`].
+    pub checkpoint_keep: usize,
+    /// Write TensorBoard scalars and a progress event every M updates (M ≥ 1) [ours: 200].
+    pub metrics_every: u64,
+    /// Send |TD error| back as new priorities (prioritised replay tables only) [paper: uniform
+    /// replay, so off].
+    pub send_priorities: bool,
+}
+
+impl Default for DriverConfig {
+    fn default() -> Self {
+        DriverConfig { publish_every: 50, checkpoint_every: 20_000, checkpoint_keep: crate::DEFAULT_CHECKPOINT_KEEP, metrics_every: 200, send_priorities: false }
+    }
+}
+
+/// Everything the learner process needs (`mapless train` writes it as `learner.yaml`; the `mapless-learner` binary reads it).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LearnerServiceConfig {
+    /// Algorithm and hyperparameters.
+    pub learner: LearnerConfig,
+    /// Publishing, checkpoint and metrics cadence.
+    #[serde(default)]
+    pub driver: DriverConfig,
+    /// Observation and action lengths (the replay table's).
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    /// The replay service, e.g. `http://127.0.0.1:50051`.
+    pub replay: String,
+    /// Where the weights service listens (`127.0.0.1:0`: any free port, printed on stdout).
+    pub weights_listen: SocketAddr,
+    /// Checkpoints go here; with `resume`, the newest one is loaded at start.
+    pub checkpoint_dir: PathBuf,
+    /// TensorBoard event files.
+    pub tensorboard_dir: Option<PathBuf>,
+    /// Newest published policy, for evaluation and deployment (`.safetensors`, written at
+    /// start, every few seconds while the weights version advances, and at exit).
+    pub policy_file: Option<PathBuf>,
+    /// Continue from the newest checkpoint in `checkpoint_dir` when there is one.
+    #[serde(default)]
+    pub resume: bool,
+    /// libtorch threads (intra-op); inter-op is 1.
+    #[serde(default = "one")]
+    pub threads: usize,
+    /// The weights service's TLS certificate and key (required, with `auth_token_file`, on a
+    /// non-loopback `weights_listen`).
+    #[serde(default)]
+    pub tls: Option<mapless_net::TlsFiles>,
+    /// File holding the bearer token subscribers must send.
+    #[serde(default)]
+    pub auth_token_file: Option<PathBuf>,
+    /// CA and token for reaching a replay service on another host.
+    #[serde(default)]
+    pub replay_security: mapless_net::ClientSecurity,
+    /// Prometheus `/metrics` address (loopback); none: off.
+    #[serde(default)]
+    pub metrics_listen: Option<SocketAddr>,
+}
+
+fn one() -> usize {
+    1
+}

@@ -1,0 +1,33 @@
+//! `mapless-net` — how the cluster's processes reach each other, shared by the actors, the
+//! replay, the learner and the supervisor; no libtorch, no simulator, no table.
+//!
+//! ```text
+//!   actor ──ShmWriter (iceoryx2, same host) / Insert (gRPC)──► replay ──Sample (gRPC)──► learner
+//!     ▲                                                                                   │
+//!     └───────────────────── weights::subscribe / follow (gRPC stream) ◄──────────────────┘
+//!   actor ──stats::report──► supervisor (stats::serve_collector)
+//! ```
+//!
+//! - [`endpoint`]: where a service is and how to reach it (URI, TLS CA, bearer token), the
+//!   client-side [`ClientSecurity`] settings, and [`NetError`];
+//! - [`serve`]: the server side of the same rules — TLS files, bearer-token check, and
+//!   [`serve::serve_secured`], the one way every gRPC service of the cluster is served;
+//! - [`shm`]: the shared-memory ingest's settings, wire types and the actors' [`shm::ShmWriter`];
+//! - [`weights`]: the checked weights-stream client and a reconnecting follower;
+//! - [`stats`]: episode statistics, reported by actors and collected by the supervisor;
+//! - [`logging`]: every process's log set-up with its identity on every line;
+//! - [`metrics`]: the Prometheus `/metrics` exporter of every process, and the one line per
+//!   figure that every `mapless bench` prints;
+//! - [`signals`]: the SIGINT/SIGTERM every service stops on.
+
+pub mod endpoint;
+pub mod logging;
+pub mod metrics;
+pub mod serve;
+pub mod shm;
+pub mod stats;
+pub mod weights;
+
+pub use endpoint::{ClientSecurity, GrpcEndpoint, NetError, error_chain};
+pub use serve::{BearerAuth, Security, TlsFiles, TlsPem};
+pub mod signals;
