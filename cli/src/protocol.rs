@@ -2,7 +2,7 @@
 //! episode") and when an evaluation meets the paper's exploration figures (the stop criterion).
 
 use crate::eval::EvalSummary;
-use crate::train::EpisodeRow;
+use crate::train::episodes::EpisodeRow;
 
 /// Order-`window` moving average of `values` at every index from `window − 1` on.
 fn moving_average(values: &[f64], window: usize) -> Vec<f64> {

@@ -17,7 +17,7 @@ pub mod service;
 
 pub use algorithm::*;
 pub use device::Device;
-pub use service::{DriverConfig, LearnerServiceConfig};
+pub use service::{DriverConfig, LearnerEvent, LearnerServiceConfig};
 
 /// Hidden-layer width when none is given ([inferred], SPEC §2).
 pub const DEFAULT_HIDDEN_WIDTH: i64 = 256;

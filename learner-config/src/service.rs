@@ -83,3 +83,59 @@ pub struct LearnerServiceConfig {
 fn one() -> usize {
     1
 }
+
+/// One line of the learner process's stdout, a JSON object tagged by `event` (what the
+/// supervisor of `mapless train` reads). Other lines (`weights on ADDR`, `metrics on URL`) are
+/// plain text.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "event", rename_all = "snake_case", deny_unknown_fields)]
+pub enum LearnerEvent {
+    /// Every second while learning.
+    Status {
+        /// Gradient updates done (the agent's counter; continues across resumes).
+        updates: u64,
+        /// Updates per second over the last second.
+        updates_per_s: f64,
+        /// Newest published weights version.
+        weights_version: u64,
+        /// Minibatches received from the replay.
+        batches: u64,
+        /// Replay sample streams reopened.
+        reconnects: u64,
+    },
+    /// Once, after the final publication and checkpoint.
+    Stopped {
+        updates: u64,
+        weights_version: u64,
+        /// The final checkpoint's folder.
+        checkpoint: PathBuf,
+    },
+}
+
+impl LearnerEvent {
+    /// Gradient updates done, whichever the event.
+    pub fn updates(&self) -> u64 {
+        match self {
+            LearnerEvent::Status { updates, .. } | LearnerEvent::Stopped { updates, .. } => *updates,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn learner_events_are_one_json_object_tagged_by_event() {
+        let status = LearnerEvent::Status { updates: 7, updates_per_s: 2.5, weights_version: 3, batches: 9, reconnects: 0 };
+        let line = serde_json::to_string(&status).unwrap();
+        assert!(line.starts_with(r#"{"event":"status","updates":7,"#), "{line}");
+        assert_eq!(serde_json::from_str::<LearnerEvent>(&line).unwrap(), status);
+        let stopped: LearnerEvent = serde_json::from_str(r#"{"event":"stopped","updates":12,"weights_version":4,"checkpoint":"/r/checkpoints/ckpt-12"}"#).unwrap();
+        assert_eq!(stopped.updates(), 12);
+        // Not an event: a plain line, an unknown event, a missing field.
+        for bad in ["weights on 127.0.0.1:5", r#"{"event":"paused"}"#, r#"{"event":"status","updates":1}"#] {
+            assert!(serde_json::from_str::<LearnerEvent>(bad).is_err(), "{bad}");
+        }
+    }
+}

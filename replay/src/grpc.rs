@@ -32,9 +32,10 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use tracing::{Instrument, debug, info, info_span, warn};
 
+use crate::actors::ActorStats;
 use crate::config::SamplerConfig;
 use crate::error::ReplayError;
-use crate::table::{ActorStats, Table};
+use crate::table::Table;
 
 /// How long a blocked table call waits before checking whether its peer is still there.
 /// Bounds how long a vanished client keeps a thread and its actor's stream slot.

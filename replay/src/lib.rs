@@ -10,6 +10,7 @@
 //! Anchored on DeepMind Reverb (tables, selectors, a rate limiter), with exactly-once inserts
 //! on (actor id, sequence). This crate never links libtorch.
 
+pub mod actors;
 pub mod bench;
 pub mod config;
 pub mod error;
@@ -23,7 +24,8 @@ pub mod sum_tree;
 pub mod table;
 mod wal;
 
+pub use actors::ActorStats;
 pub use config::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, SamplerConfig, TableConfig};
 pub use error::ReplayError;
-pub use table::{ActorStats, RecoveryReport, SnapshotInfo, Table};
+pub use table::{RecoveryReport, SnapshotInfo, Table};
 pub use wal::StorageFault;

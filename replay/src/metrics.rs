@@ -23,8 +23,9 @@ use std::sync::Arc;
 
 use tokio::net::TcpListener;
 
+use crate::actors::ActorStats;
 use crate::grpc::{newest_policy_version, policy_version_lag};
-use crate::table::{ActorStats, Table};
+use crate::table::Table;
 
 /// Serves `GET /metrics` for `table` on `listener` until `shutdown` resolves
 /// (`mapless_net::metrics`, the exporter every process uses).

@@ -30,10 +30,10 @@ use std::path::{Path, PathBuf};
 use rand_pcg::Pcg64Mcg;
 use serde::{Deserialize, Serialize};
 
+use crate::actors::ActorStats;
 use crate::config::SamplerConfig;
 use crate::error::ReplayError;
-use crate::table::ActorStats;
-use crate::wal::{parse_numbered_name, storage, sync_dir};
+use crate::wal::{parse_numbered_name, storage, sync_dir, unix_ms};
 
 const MAGIC: &[u8; 8] = b"MPLSSNAP";
 const FORMAT_VERSION: u32 = 1;
@@ -226,7 +226,7 @@ impl SnapshotStore {
     /// LSNs) but stays for inspection.
     pub fn set_aside(&self, path: &Path, why: &str) -> Result<(), ReplayError> {
         let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let to = self.dir.join(format!("{name}.{why}.{}", crate::table::unix_ms()));
+        let to = self.dir.join(format!("{name}.{why}.{}", unix_ms()));
         fs::rename(path, &to).map_err(|e| storage(path, format!("move to {}: {e}", to.display())))?;
         sync_dir(&self.dir)
     }

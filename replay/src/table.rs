@@ -32,7 +32,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use mapless_proto::v1::{ActorInfo, InsertAck, ProtocolVersion, RateLimiterInfo, SampledBatch, ServerInfoResponse, TransitionBatch};
 use mapless_proto::{FloatColumn, FloatEncoding, extend_f32le};
@@ -40,33 +40,18 @@ use prost::Message;
 use prost::bytes::Bytes;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64Mcg;
-use serde::{Deserialize, Serialize};
 
+use crate::actors::ActorStats;
 use crate::config::{FsyncPolicy, PersistenceConfig, SamplerConfig, TableConfig};
 use crate::error::ReplayError;
 use crate::rate_limiter::RateLimiter;
 use crate::snapshot::{SnapshotData, SnapshotMeta, SnapshotStore};
 use crate::sum_tree::SumTree;
-use crate::wal::{self, StorageFault, Wal, WalSync};
+use crate::wal::{self, StorageFault, Wal, WalSync, unix_ms};
 
 /// Snapshots kept on disk. The log is kept back to the oldest, so a damaged newest snapshot
 /// falls back to the previous one without losing anything.
 const SNAPSHOTS_KEPT: usize = 2;
-
-/// Per-actor bookkeeping: de-duplication and what server info reports.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct ActorStats {
-    /// Highest sequence stored; batches at or below it are duplicates.
-    pub last_sequence: u64,
-    pub batches: u64,
-    pub rows: u64,
-    pub duplicate_batches: u64,
-    pub rejected_batches: u64,
-    pub last_rejection: String,
-    pub last_policy_version: u64,
-    pub last_insert_unix_ms: u64,
-}
 
 /// Insert and sample rates over the last few seconds.
 #[derive(Debug)]
@@ -287,10 +272,6 @@ fn gather(column: &[f32], width: usize, slots: &[usize], floats: FloatEncoding) 
             (Vec::new(), Bytes::from(out))
         }
     }
-}
-
-pub(crate) fn unix_ms() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
 }
 
 impl Table {

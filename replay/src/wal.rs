@@ -40,6 +40,12 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use crate::config::FsyncPolicy;
 use crate::error::ReplayError;
 
+/// Wall-clock milliseconds since the Unix epoch (0 before it): the log's and the table's
+/// timestamps.
+pub(crate) fn unix_ms() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+}
+
 pub(crate) const SEGMENT_MAGIC: &[u8; 8] = b"MPLSWAL\0";
 pub(crate) const FORMAT_VERSION: u32 = 1;
 /// magic 8 | version 4 | reserved 4 | first_lsn 8.
@@ -460,7 +466,7 @@ impl Wal {
             }
         }
         let quarantine = dir.join("corrupt");
-        let stamp = crate::table::unix_ms();
+        let stamp = unix_ms();
         let mut moved_any = false;
         let quarantine_dir = || -> Result<(), ReplayError> { fs::create_dir_all(&quarantine).map_err(|e| storage(&quarantine, format!("create: {e}"))) };
         // Whole segments past the fault.

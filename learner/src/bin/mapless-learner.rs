@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use mapless_learner::algo::{Agent, bench_updates};
-use mapless_learner::config::{AlgorithmKind, LearnerConfig, LearnerServiceConfig};
+use mapless_learner::config::{AlgorithmKind, LearnerConfig, LearnerEvent, LearnerServiceConfig};
 use mapless_learner::driver::Driver;
 use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig};
 use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve};
@@ -29,7 +29,6 @@ use mapless_learner::{Device, TorchThreads, checkpoint, device};
 use mapless_net::metrics::{self, bench_report};
 use mapless_net::serve::Security;
 use mapless_proto::weights_file::write_safetensors_file;
-use serde::Serialize;
 
 #[derive(Parser)]
 #[command(
@@ -125,17 +124,6 @@ impl Gauges {
         line(&mut out, "mapless_learner_replay_reconnects_total", "counter", "Replay sample streams reopened.", g(&self.reconnects));
         out
     }
-}
-
-/// Status line printed every second.
-#[derive(Serialize)]
-struct Status {
-    event: &'static str,
-    updates: u64,
-    updates_per_s: f64,
-    weights_version: u64,
-    batches: u64,
-    reconnects: u64,
 }
 
 /// How often the policy file follows the published weights (a progress evaluation reads it;
@@ -251,25 +239,19 @@ fn run(config_path: &Path) -> Result<()> {
         if last.0.elapsed() >= Duration::from_secs(1) {
             let n = driver.agent().updates();
             let s = driver.source().stats();
-            let status = Status {
-                event: "status",
-                updates: n,
-                updates_per_s: (n - last.1) as f64 / last.0.elapsed().as_secs_f64(),
-                weights_version: driver.weights_version(),
-                batches: s.batches,
-                reconnects: s.reconnects,
-            };
-            println!("{}", serde_json::to_string(&status)?);
-            if status.weights_version != last_recorded_version {
+            let updates_per_s = (n - last.1) as f64 / last.0.elapsed().as_secs_f64();
+            let weights_version = driver.weights_version();
+            println!("{}", serde_json::to_string(&LearnerEvent::Status { updates: n, updates_per_s, weights_version, batches: s.batches, reconnects: s.reconnects })?);
+            if weights_version != last_recorded_version {
                 std::fs::create_dir_all(&cfg.checkpoint_dir)?;
-                write_version_file(&published_file, status.weights_version)?;
-                last_recorded_version = status.weights_version;
+                write_version_file(&published_file, weights_version)?;
+                last_recorded_version = weights_version;
             }
-            gauges.updates.store(status.updates, Ordering::Relaxed);
-            gauges.updates_per_s_milli.store((status.updates_per_s * 1000.0) as u64, Ordering::Relaxed);
-            gauges.weights_version.store(status.weights_version, Ordering::Relaxed);
-            gauges.batches.store(status.batches, Ordering::Relaxed);
-            gauges.reconnects.store(status.reconnects, Ordering::Relaxed);
+            gauges.updates.store(n, Ordering::Relaxed);
+            gauges.updates_per_s_milli.store((updates_per_s * 1000.0) as u64, Ordering::Relaxed);
+            gauges.weights_version.store(weights_version, Ordering::Relaxed);
+            gauges.batches.store(s.batches, Ordering::Relaxed);
+            gauges.reconnects.store(s.reconnects, Ordering::Relaxed);
             last = (Instant::now(), n);
         }
         if last_policy_write.elapsed() >= POLICY_FILE_EVERY && driver.weights_version() != last_policy_version {
@@ -285,7 +267,7 @@ fn run(config_path: &Path) -> Result<()> {
     let ck = driver.checkpoint()?;
     write_policy(&driver, &cfg.policy_file);
     tracing::info!(checkpoint = %ck.display(), updates = driver.agent().updates(), weights_version = driver.weights_version(), "final checkpoint written");
-    println!("{}", serde_json::json!({"event": "stopped", "updates": driver.agent().updates(), "weights_version": driver.weights_version(), "checkpoint": ck}));
+    println!("{}", serde_json::to_string(&LearnerEvent::Stopped { updates: driver.agent().updates(), weights_version: driver.weights_version(), checkpoint: ck })?);
     let _ = stop_tx.send(true);
     let _ = rt.block_on(server);
     rt.shutdown_timeout(Duration::from_secs(2));
