@@ -1,8 +1,14 @@
-//! Reading the grey images of ROS maps: PGM (P2 ASCII, P5 binary, 8 or 16 bit) and PNG.
+//! Reading the grey images of ROS maps: PGM (P2 ASCII, P5 binary, 8 or 16 bit, any maxval) and
+//! PNG, decoded by the `image` crate and reduced to 8-bit grey as ROS `map_server` does (colour
+//! channels averaged, alpha ignored).
 
+use std::io::Cursor;
 use std::path::Path;
 
+use image::{DynamicImage, ImageFormat, ImageReader, Limits};
+
 /// An 8-bit grey image, row 0 at the top.
+#[derive(Debug)]
 pub struct GrayImage {
     pub width: usize,
     pub height: usize,
@@ -16,96 +22,82 @@ const MAX_SIDE: usize = 20_000;
 /// the path).
 pub fn read_gray(path: &Path) -> Result<GrayImage, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read image: {e}"))?;
-    if bytes.starts_with(b"\x89PNG") {
-        read_png(&bytes)
+    let (format, name) = if bytes.starts_with(b"\x89PNG") {
+        (ImageFormat::Png, "PNG")
     } else if bytes.starts_with(b"P5") || bytes.starts_with(b"P2") {
-        read_pgm(&bytes)
+        (ImageFormat::Pnm, "PGM")
     } else {
-        Err("not a PGM (P2/P5) or PNG image".into())
-    }
-}
-
-fn read_png(bytes: &[u8]) -> Result<GrayImage, String> {
-    let mut dec = png::Decoder::new(bytes);
-    dec.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-    let mut reader = dec.read_info().map_err(|e| format!("corrupt PNG: {e}"))?;
-    let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).map_err(|e| format!("corrupt PNG: {e}"))?;
-    let (w, h) = (info.width as usize, info.height as usize);
-    check_size(w, h)?;
-    let ch = match info.color_type {
-        png::ColorType::Grayscale => 1,
-        png::ColorType::GrayscaleAlpha => 2,
-        png::ColorType::Rgb => 3,
-        png::ColorType::Rgba => 4,
-        png::ColorType::Indexed => return Err("indexed PNG was not expanded".into()),
+        return Err("not a PGM (P2/P5) or PNG image".into());
     };
-    let pixels = buf[..w * h * ch]
-        .chunks_exact(ch)
-        .map(|p| match ch {
-            1 | 2 => p[0],
-            _ => ((p[0] as u32 + p[1] as u32 + p[2] as u32) / 3) as u8,
-        })
-        .collect();
-    Ok(GrayImage { width: w, height: h, pixels })
-}
-
-fn check_size(w: usize, h: usize) -> Result<(), String> {
+    let reader = || {
+        let mut r = ImageReader::with_format(Cursor::new(&bytes), format);
+        let mut limits = Limits::default();
+        limits.max_image_width = Some(MAX_SIDE as u32);
+        limits.max_image_height = Some(MAX_SIDE as u32);
+        r.limits(limits);
+        r
+    };
+    // The header first, so that a bad header and a short raster read as what they are.
+    let (w, h) = reader().into_dimensions().map_err(|e| format!("corrupt {name} header: {e}"))?;
+    let (w, h) = (w as usize, h as usize);
     if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE {
         return Err(format!("image size {w}x{h} outside 1..={MAX_SIDE} per side"));
     }
-    Ok(())
+    let image = reader().decode().map_err(|e| match &e {
+        image::ImageError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => format!("{name} raster truncated: {w}x{h} pixels expected ({e})"),
+        _ if name == "PGM" && e.to_string().to_ascii_lowercase().contains("end") => format!("{name} raster truncated: {w}x{h} pixels expected ({e})"),
+        _ => format!("corrupt {name}: {e}"),
+    })?;
+    Ok(GrayImage { width: w, height: h, pixels: gray8(image) })
 }
 
-fn read_pgm(bytes: &[u8]) -> Result<GrayImage, String> {
-    // Header: magic, width, height, maxval, separated by whitespace, '#' comments allowed;
-    // one whitespace byte, then the raster.
-    let mut pos = 2;
-    let mut fields = [0usize; 3];
-    for f in &mut fields {
-        loop {
-            while pos < bytes.len() && bytes[pos].is_ascii_whitespace() {
-                pos += 1;
-            }
-            if pos < bytes.len() && bytes[pos] == b'#' {
-                while pos < bytes.len() && bytes[pos] != b'\n' {
-                    pos += 1;
-                }
-            } else {
-                break;
-            }
-        }
-        let start = pos;
-        while pos < bytes.len() && bytes[pos].is_ascii_digit() {
-            pos += 1;
-        }
-        if start == pos {
-            return Err("corrupt PGM header (expected width, height and maxval)".into());
-        }
-        *f = std::str::from_utf8(&bytes[start..pos]).ok().and_then(|s| s.parse().ok()).ok_or("corrupt PGM header: number too large")?;
+/// 8-bit grey as ROS `map_server` reads an image: the mean of the colour channels, alpha
+/// ignored; 16-bit samples rounded to 8 bits.
+fn gray8(image: DynamicImage) -> Vec<u8> {
+    let to8 = |v: u16| ((u32::from(v) * 255 + 32_767) / 65_535) as u8;
+    let mean = |c: &[u8]| ((u32::from(c[0]) + u32::from(c[1]) + u32::from(c[2])) / 3) as u8;
+    match image {
+        DynamicImage::ImageLuma8(b) => b.into_raw(),
+        DynamicImage::ImageLumaA8(b) => b.pixels().map(|p| p.0[0]).collect(),
+        DynamicImage::ImageLuma16(b) => b.pixels().map(|p| to8(p.0[0])).collect(),
+        DynamicImage::ImageLumaA16(b) => b.pixels().map(|p| to8(p.0[0])).collect(),
+        DynamicImage::ImageRgba8(b) => b.pixels().map(|p| mean(&p.0)).collect(),
+        other => other.to_rgb8().pixels().map(|p| mean(&p.0)).collect(),
     }
-    let [w, h, maxval] = fields;
-    check_size(w, h)?;
-    if maxval == 0 || maxval > 65535 {
-        return Err(format!("PGM maxval {maxval} outside 1..=65535"));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn read(name: &str, bytes: &[u8]) -> Result<GrayImage, String> {
+        let dir = std::env::temp_dir().join(format!("mapless-image-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        read_gray(&p)
     }
-    let scale = |v: usize| ((v.min(maxval) * 255 + maxval / 2) / maxval) as u8;
-    let n = w * h;
-    let pixels: Vec<u8> = if bytes.starts_with(b"P5") {
-        pos += 1; // the single whitespace after maxval
-        let bpp = if maxval > 255 { 2 } else { 1 };
-        let raster = bytes.get(pos..).unwrap_or(&[]);
-        if raster.len() < n * bpp {
-            return Err(format!("PGM raster truncated: {w}x{h} needs {} bytes, file has {}", n * bpp, raster.len()));
-        }
-        if bpp == 1 { raster[..n].iter().map(|&v| scale(v as usize)).collect() } else { raster[..2 * n].chunks_exact(2).map(|p| scale(u16::from_be_bytes([p[0], p[1]]) as usize)).collect() }
-    } else {
-        let text = std::str::from_utf8(&bytes[pos..]).map_err(|_| "P2 raster is not ASCII")?;
-        let vals: Vec<u8> = text.split_ascii_whitespace().take(n).map(|t| t.parse::<usize>().map(scale).map_err(|_| format!("P2 raster value `{t}` is not a number"))).collect::<Result<_, _>>()?;
-        if vals.len() < n {
-            return Err(format!("PGM raster truncated: {w}x{h} needs {n} values, file has {}", vals.len()));
-        }
-        vals
-    };
-    Ok(GrayImage { width: w, height: h, pixels })
+
+    #[test]
+    fn pgm_of_any_maxval_and_depth_reads_as_8_bit_grey() {
+        let g = read("a.pgm", b"P2\n# comment\n3 1\n15\n0 15 7\n").unwrap();
+        assert_eq!((g.width, g.height, g.pixels), (3, 1, vec![0, 255, 119]));
+        let mut p5 = b"P5\n2 1\n65535\n".to_vec();
+        p5.extend_from_slice(&[0xff, 0xff, 0x80, 0x00]);
+        assert_eq!(read("b.pgm", &p5).unwrap().pixels, vec![255, 128]);
+    }
+
+    #[test]
+    fn colour_png_is_the_channel_mean() {
+        let mut bytes = Vec::new();
+        let rgb = image::RgbImage::from_raw(2, 1, vec![255, 0, 0, 30, 60, 90]).unwrap();
+        DynamicImage::ImageRgb8(rgb).write_to(&mut Cursor::new(&mut bytes), ImageFormat::Png).unwrap();
+        assert_eq!(read("c.png", &bytes).unwrap().pixels, vec![85, 60]);
+    }
+
+    #[test]
+    fn oversized_and_other_images_are_refused_by_name() {
+        assert!(read("d.pgm", b"P5\n30000 1\n255\n").unwrap_err().contains("header"));
+        assert!(read("e.ppm", b"P6\n1 1\n255\nabc").unwrap_err().contains("not a PGM"));
+    }
 }
