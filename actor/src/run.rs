@@ -144,14 +144,14 @@ struct Gauges {
 
 impl Gauges {
     fn render(&self) -> String {
-        let mut out = String::new();
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
-        metrics::line(&mut out, "mapless_actor_vehicle_steps_total", "counter", "Vehicle-steps taken by this actor process.", g(&self.vehicle_steps));
-        metrics::line(&mut out, "mapless_actor_episodes_total", "counter", "Training episodes finished.", g(&self.episodes));
-        metrics::line(&mut out, "mapless_actor_policy_version", "gauge", "Weights version acting now (0: warm-up).", g(&self.policy_version));
-        metrics::line(&mut out, "mapless_actor_batches_acked_total", "counter", "Transition batches acknowledged by the replay.", g(&self.batches_acked));
-        metrics::line(&mut out, "mapless_actor_reconnects_total", "counter", "Replay connections reopened.", g(&self.reconnects));
-        out
+        let mut x = metrics::Exposition::new();
+        x.counter("mapless_actor_vehicle_steps", "Vehicle-steps taken by this actor process.", g(&self.vehicle_steps))
+            .counter("mapless_actor_episodes", "Training episodes finished.", g(&self.episodes))
+            .gauge("mapless_actor_policy_version", "Weights version acting now (0: warm-up).", g(&self.policy_version))
+            .counter("mapless_actor_batches_acked", "Transition batches acknowledged by the replay.", g(&self.batches_acked))
+            .counter("mapless_actor_reconnects", "Replay connections reopened.", g(&self.reconnects));
+        x.text()
     }
 }
 

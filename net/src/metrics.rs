@@ -1,19 +1,27 @@
 //! The Prometheus `/metrics` exporter of every mapless process (replay, learner, actors):
-//! text exposition format 0.0.4 over plain HTTP/1 (axum), rendered afresh on each scrape.
+//! OpenMetrics text written by `prometheus-client` from an [`Exposition`] built afresh on each
+//! scrape (the values are read where they live — the replay's table, a process's counters — so
+//! nothing is cached), served over plain HTTP/1 by axum.
 
 use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::sync::atomic::AtomicU64;
 
 use axum::extract::State;
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
+use prometheus_client::encoding::{EncodeLabelValue, LabelValueEncoder};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
-/// Content type of the text exposition format.
-pub const CONTENT_TYPE_TEXT: &str = "text/plain; version=0.0.4; charset=utf-8";
+/// Content type of the OpenMetrics text format (what Prometheus asks for first).
+pub const CONTENT_TYPE_TEXT: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
 
 /// Renders the exposition text on each scrape.
 pub type Render = Arc<dyn Fn() -> String + Send + Sync>;
@@ -51,10 +59,88 @@ pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, mut
     Ok(bound)
 }
 
-/// One metric in the text format: `# HELP`, `# TYPE` and the sample.
-pub fn line(out: &mut String, name: &str, kind: &str, help: &str, value: f64) {
-    use std::fmt::Write as _;
-    let _ = write!(out, "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}\n");
+/// A label value, escaped as the text format requires (backslash, double quote, newline):
+/// label values such as actor ids come from peers, and `prometheus-client` writes values as
+/// they are.
+#[derive(Clone, Debug, Hash, PartialEq, Eq)]
+pub struct LabelValue(pub String);
+
+impl EncodeLabelValue for LabelValue {
+    fn encode(&self, encoder: &mut LabelValueEncoder) -> std::fmt::Result {
+        use std::fmt::Write as _;
+        encoder.write_str(&self.0.replace('\\', r"\\").replace('"', "\\\"").replace('\n', r"\n"))
+    }
+}
+
+/// A series' labels: `(name, value)` pairs.
+pub type Labels = Vec<(&'static str, LabelValue)>;
+
+/// `[(name, value)]` as [`Labels`].
+pub fn labels<const N: usize>(pairs: [(&'static str, &str); N]) -> Labels {
+    pairs.into_iter().map(|(k, v)| (k, LabelValue(v.to_owned()))).collect()
+}
+
+/// `prometheus-client` ends every help text with a period of its own.
+fn help_text(help: &str) -> &str {
+    help.strip_suffix('.').unwrap_or(help)
+}
+
+/// The metrics of one scrape: families of gauges and counters with their samples, encoded as
+/// OpenMetrics text by `prometheus-client`.
+#[derive(Default)]
+pub struct Exposition {
+    registry: Registry,
+}
+
+impl Exposition {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// A gauge family `name` with one sample per `(labels, value)`.
+    pub fn gauges(&mut self, name: &str, help: &str, samples: impl IntoIterator<Item = (Labels, f64)>) -> &mut Self {
+        let family = Family::<Labels, Gauge<f64, AtomicU64>>::default();
+        for (l, v) in samples {
+            family.get_or_create(&l).set(v);
+        }
+        self.registry.register(name, help_text(help), family);
+        self
+    }
+
+    /// A counter family; `name` is the family's, without the `_total` the samples carry
+    /// (`replay_inserts` → `replay_inserts_total`).
+    pub fn counters(&mut self, name: &str, help: &str, samples: impl IntoIterator<Item = (Labels, f64)>) -> &mut Self {
+        let family = Family::<Labels, Counter<f64, AtomicU64>>::default();
+        for (l, v) in samples {
+            family.get_or_create(&l).inc_by(v);
+        }
+        self.registry.register(name, help_text(help), family);
+        self
+    }
+
+    /// One unlabelled gauge.
+    pub fn gauge(&mut self, name: &str, help: &str, value: f64) -> &mut Self {
+        let g = Gauge::<f64, AtomicU64>::default();
+        g.set(value);
+        self.registry.register(name, help_text(help), g);
+        self
+    }
+
+    /// One unlabelled counter (`name` without `_total`).
+    pub fn counter(&mut self, name: &str, help: &str, value: f64) -> &mut Self {
+        let c = Counter::<f64, AtomicU64>::default();
+        c.inc_by(value);
+        self.registry.register(name, help_text(help), c);
+        self
+    }
+
+    /// The OpenMetrics text, `# EOF` included.
+    pub fn text(&self) -> String {
+        let mut out = String::new();
+        // Writing into a String cannot fail.
+        let _ = prometheus_client::encoding::text::encode(&mut out, &self.registry);
+        out
+    }
 }
 
 /// One benchmark figure on stdout, as every `mapless bench …` prints it: a JSON object
@@ -77,9 +163,9 @@ mod tests {
         let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
         let (stop_tx, stop_rx) = watch::channel(false);
         let render: Render = Arc::new(|| {
-            let mut s = String::new();
-            line(&mut s, "x_total", "counter", "Things.", 3.0);
-            s
+            let mut x = Exposition::new();
+            x.counter("x", "Things.", 3.0).gauges("y", "Levels.", [(labels([("actor", "a\"b\\c\nd")]), 0.5)]);
+            x.text()
         });
         assert!(spawn(&rt, "0.0.0.0:0".parse().unwrap(), render.clone(), stop_rx.clone()).is_err(), "non-loopback is refused");
         let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), render, stop_rx).unwrap();
@@ -94,7 +180,10 @@ mod tests {
         };
         let ok = get("/metrics");
         assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
-        assert!(ok.contains("# TYPE x_total counter\nx_total 3\n"), "{ok}");
+        assert!(ok.to_ascii_lowercase().contains("content-type: application/openmetrics-text"), "{ok}");
+        assert!(ok.contains("# HELP x Things.\n# TYPE x counter\nx_total 3.0\n"), "{ok}");
+        assert!(ok.contains(r#"y{actor="a\"b\\c\nd"} 0.5"#), "label values are escaped: {ok}");
+        assert!(ok.trim_end().ends_with("# EOF"), "{ok}");
         assert!(get("/nope").starts_with("HTTP/1.1 404"));
         let _ = stop_tx.send(true);
     }

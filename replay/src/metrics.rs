@@ -1,5 +1,5 @@
-//! Prometheus text exposition (format 0.0.4) of one table at `GET /metrics`, over plain
-//! HTTP/1. Every scrape reads the table's counters under its lock once (O(actors)); nothing
+//! The Prometheus metrics of one table at `GET /metrics` (OpenMetrics text, written by
+//! `prometheus-client` through `mapless_net::metrics::Exposition`). Every scrape reads the table's counters under its lock once (O(actors)); nothing
 //! is cached, so a scrape always shows the current state.
 //!
 //! Series (all carry `table`; per-actor ones also `actor`):
@@ -17,10 +17,10 @@
 //! The liveness gauge is `replay_up`, not `up`: Prometheus writes its own `up` series for
 //! every scrape target, and a scraped sample of that name would collide with it.
 
-use std::fmt::Write as _;
 use std::future::Future;
 use std::sync::Arc;
 
+use mapless_net::metrics::{Exposition, Labels, labels};
 use tokio::net::TcpListener;
 
 use crate::actors::ActorStats;
@@ -39,63 +39,27 @@ pub fn render(table: &Table) -> String {
     let mut actors: Vec<(String, ActorStats)> = table.actors().into_iter().collect();
     actors.sort_by(|a, b| a.0.cmp(&b.0));
     let newest = newest_policy_version(actors.iter().map(|(_, a)| a));
-    let t = escape(&info.table);
+    let t = info.table.as_str();
     let rl = info.rate_limiter.unwrap_or_default();
-    let mut out = String::with_capacity(2048 + actors.len() * 600);
-    let mut family = |name: &str, kind: &str, help: &str, samples: &[(String, f64)]| {
-        let _ = writeln!(out, "# HELP {name} {help}");
-        let _ = writeln!(out, "# TYPE {name} {kind}");
-        for (labels, value) in samples {
-            let _ = writeln!(out, "{name}{{{labels}}} {}", number(*value));
-        }
-    };
-    let table_only = |v: f64| vec![(format!("table=\"{t}\""), v)];
-    family("replay_up", "gauge", "1 while the replay service is serving.", &table_only(1.0));
-    family("replay_size", "gauge", "Rows stored in the table.", &table_only(info.size as f64));
-    family("replay_capacity", "gauge", "Most rows the table keeps; the oldest are evicted first.", &table_only(info.capacity as f64));
-    family("replay_inserts_total", "counter", "Rows inserted (duplicates excluded).", &table_only(info.inserts_total as f64));
-    family("replay_samples_total", "counter", "Rows sampled (a minibatch of 128 counts 128).", &table_only(info.samples_total as f64));
-    family("replay_insert_rows_per_s", "gauge", "Inserted rows per second over the last ~10 s.", &table_only(info.inserts_per_s));
-    family("replay_sample_rows_per_s", "gauge", "Sampled rows per second over the last ~10 s.", &table_only(info.samples_per_s));
-    family(
-        "replay_rate_limiter_blocked_seconds_total",
-        "counter",
-        "Seconds inserts or samples spent waiting on the rate limiter.",
-        &[(format!("table=\"{t}\",side=\"insert\""), rl.inserts_blocked_ms as f64 / 1e3), (format!("table=\"{t}\",side=\"sample\""), rl.samples_blocked_ms as f64 / 1e3)],
-    );
-    let per_actor = |f: &dyn Fn(&ActorStats) -> f64| -> Vec<(String, f64)> { actors.iter().map(|(id, a)| (format!("table=\"{t}\",actor=\"{}\"", escape(id)), f(a))).collect() };
-    family("replay_actor_rows_total", "counter", "Rows inserted per actor.", &per_actor(&|a| a.rows as f64));
-    family("replay_actor_batches_total", "counter", "Batches inserted per actor (duplicates excluded).", &per_actor(&|a| a.batches as f64));
-    family("replay_actor_duplicate_batches_total", "counter", "Batches acknowledged as duplicates (retransmissions) per actor.", &per_actor(&|a| a.duplicate_batches as f64));
-    family("replay_actor_rejected_batches_total", "counter", "Batches refused as invalid per actor.", &per_actor(&|a| a.rejected_batches as f64));
-    family("replay_actor_policy_version_lag", "gauge", "Newest policy_version seen across actors minus this actor's newest.", &per_actor(&|a| policy_version_lag(newest, a) as f64));
-    out
-}
-
-/// A label value as the text format wants it: backslash, double quote and newline escaped.
-fn escape(value: &str) -> String {
-    value.replace('\\', r"\\").replace('"', "\\\"").replace('\n', r"\n")
-}
-
-/// Integers without a fraction, everything else in Rust's shortest round-trip form.
-fn number(v: f64) -> String {
-    if v.is_finite() && v.fract() == 0.0 && v.abs() < 9.0e15 { format!("{}", v as i64) } else { format!("{v}") }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn label_values_are_escaped() {
-        assert_eq!(escape(r#"a"b\c"#), r#"a\"b\\c"#);
-        assert_eq!(escape("x\ny"), r"x\ny");
-    }
-
-    #[test]
-    fn numbers_print_as_prometheus_reads_them() {
-        assert_eq!(number(3.0), "3");
-        assert_eq!(number(0.25), "0.25");
-        assert_eq!(number(f64::NAN), "NaN");
-    }
+    let table_only = |v: f64| [(labels([("table", t)]), v)];
+    let per_actor = |f: &dyn Fn(&ActorStats) -> f64| -> Vec<(Labels, f64)> { actors.iter().map(|(id, a)| (labels([("table", t), ("actor", id)]), f(a))).collect() };
+    let mut x = Exposition::new();
+    x.gauges("replay_up", "1 while the replay service is serving.", table_only(1.0))
+        .gauges("replay_size", "Rows stored in the table.", table_only(info.size as f64))
+        .gauges("replay_capacity", "Most rows the table keeps; the oldest are evicted first.", table_only(info.capacity as f64))
+        .counters("replay_inserts", "Rows inserted (duplicates excluded).", table_only(info.inserts_total as f64))
+        .counters("replay_samples", "Rows sampled (a minibatch of 128 counts 128).", table_only(info.samples_total as f64))
+        .gauges("replay_insert_rows_per_s", "Inserted rows per second over the last ~10 s.", table_only(info.inserts_per_s))
+        .gauges("replay_sample_rows_per_s", "Sampled rows per second over the last ~10 s.", table_only(info.samples_per_s))
+        .counters(
+            "replay_rate_limiter_blocked_seconds",
+            "Seconds inserts or samples spent waiting on the rate limiter.",
+            [(labels([("table", t), ("side", "insert")]), rl.inserts_blocked_ms as f64 / 1e3), (labels([("table", t), ("side", "sample")]), rl.samples_blocked_ms as f64 / 1e3)],
+        )
+        .counters("replay_actor_rows", "Rows inserted per actor.", per_actor(&|a| a.rows as f64))
+        .counters("replay_actor_batches", "Batches inserted per actor (duplicates excluded).", per_actor(&|a| a.batches as f64))
+        .counters("replay_actor_duplicate_batches", "Batches acknowledged as duplicates (retransmissions) per actor.", per_actor(&|a| a.duplicate_batches as f64))
+        .counters("replay_actor_rejected_batches", "Batches refused as invalid per actor.", per_actor(&|a| a.rejected_batches as f64))
+        .gauges("replay_actor_policy_version_lag", "Newest policy_version seen across actors minus this actor's newest.", per_actor(&|a| policy_version_lag(newest, a) as f64));
+    x.text()
 }

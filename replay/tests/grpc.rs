@@ -675,8 +675,17 @@ fn parse_exposition(body: &str) -> Vec<(String, f64)> {
     let mut typed = std::collections::HashMap::new();
     let mut helped = std::collections::HashSet::new();
     let mut samples = Vec::new();
+    // OpenMetrics: a counter family `x` has samples `x_total`; the text ends with `# EOF`.
+    let family = |name: &str, typed: &std::collections::HashMap<String, String>| match name.strip_suffix("_total") {
+        Some(base) if typed.get(base).is_some_and(|k| k == "counter") => base.to_owned(),
+        _ => name.to_owned(),
+    };
+    let mut ended = false;
     for line in body.lines() {
-        if let Some(rest) = line.strip_prefix("# HELP ") {
+        assert!(!ended, "a line after # EOF: {line}");
+        if line == "# EOF" {
+            ended = true;
+        } else if let Some(rest) = line.strip_prefix("# HELP ") {
             let name = rest.split(' ').next().expect("name");
             assert!(helped.insert(name.to_owned()), "HELP twice for {name}");
         } else if let Some(rest) = line.strip_prefix("# TYPE ") {
@@ -688,14 +697,16 @@ fn parse_exposition(body: &str) -> Vec<(String, f64)> {
             let (series, value) = line.rsplit_once(' ').unwrap_or_else(|| panic!("bad line {line:?}"));
             let name = series.split('{').next().expect("name");
             assert!(name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_'), "{name}");
-            assert!(typed.contains_key(name) && helped.contains(name), "{name} sampled before its HELP/TYPE");
-            if typed[name] == "counter" {
+            let fam = family(name, &typed);
+            assert!(typed.contains_key(&fam) && helped.contains(&fam), "{name} sampled before its HELP/TYPE");
+            if typed[&fam] == "counter" {
                 assert!(name.ends_with("_total"), "counter {name} ends in _total");
             }
             assert!(series.ends_with('}') || !series.contains('{'), "{line}");
             samples.push((series.to_owned(), value.parse::<f64>().unwrap_or_else(|_| panic!("value in {line:?}"))));
         }
     }
+    assert!(ended, "no # EOF at the end:\n{body}");
     samples
 }
 
@@ -717,7 +728,7 @@ async fn metrics_endpoint_serves_prometheus_text() {
     }));
     let (status, headers, body) = tokio::task::spawn_blocking(move || http_get(addr, "/metrics")).await.expect("get");
     assert!(status.contains(" 200 "), "{status}");
-    assert!(headers.contains("content-type: text/plain; version=0.0.4"), "{headers}");
+    assert!(headers.contains("content-type: application/openmetrics-text; version=1.0.0"), "{headers}");
     let samples = parse_exposition(&body);
     let value = |series: &str| samples.iter().find(|(s, _)| s == series).map(|(_, v)| *v).unwrap_or_else(|| panic!("{series} missing:\n{body}"));
     assert_eq!(value(r#"replay_up{table="transitions"}"#), 1.0);

@@ -114,15 +114,14 @@ struct Gauges {
 
 impl Gauges {
     fn render(&self) -> String {
-        use metrics::line;
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
-        let mut out = String::new();
-        line(&mut out, "mapless_learner_updates_total", "counter", "Gradient updates done.", g(&self.updates));
-        line(&mut out, "mapless_learner_updates_per_second", "gauge", "Updates per second over the last second.", g(&self.updates_per_s_milli) / 1000.0);
-        line(&mut out, "mapless_learner_weights_version", "gauge", "Newest published weights version.", g(&self.weights_version));
-        line(&mut out, "mapless_learner_minibatches_total", "counter", "Minibatches received from the replay.", g(&self.batches));
-        line(&mut out, "mapless_learner_replay_reconnects_total", "counter", "Replay sample streams reopened.", g(&self.reconnects));
-        out
+        let mut x = metrics::Exposition::new();
+        x.counter("mapless_learner_updates", "Gradient updates done.", g(&self.updates))
+            .gauge("mapless_learner_updates_per_second", "Updates per second over the last second.", g(&self.updates_per_s_milli) / 1000.0)
+            .gauge("mapless_learner_weights_version", "Newest published weights version.", g(&self.weights_version))
+            .counter("mapless_learner_minibatches", "Minibatches received from the replay.", g(&self.batches))
+            .counter("mapless_learner_replay_reconnects", "Replay sample streams reopened.", g(&self.reconnects));
+        x.text()
     }
 }
 
