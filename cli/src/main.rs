@@ -217,28 +217,10 @@ enum BenchCmd {
     /// Learner gradient updates per second for DDPG, TD3 and SAC at the paper's sizes
     /// (17-float observations, 2 actions, 2×256 hidden, minibatch 128), with 1 and 2 threads.
     Learner {
-        /// Seconds per configuration.
-        #[arg(long, default_value_t = 5.0)]
-        seconds: f64,
-        /// `cpu`, `cuda` or `cuda:N`.
-        #[arg(long, default_value = "cpu")]
-        device: String,
-        /// libtorch intra-op thread counts to measure.
-        #[arg(long, value_delimiter = ',', default_value = "1,2")]
-        threads: Vec<usize>,
-        /// Algorithms to measure.
-        #[arg(long, value_delimiter = ',', default_value = "ddpg,td3,sac")]
-        algos: Vec<String>,
-        /// Also measure with the twin critics evaluated one after the other (TD3, SAC; the
-        /// autograd path).
-        #[arg(long)]
-        unfused: bool,
-        /// Also measure the libtorch autograd path (`fused_update: false`), for comparison
-        /// with the default fused CPU update.
-        #[arg(long)]
-        autograd: bool,
-        #[arg(long)]
-        json: bool,
+        /// Its flags, handed on as they are: `--seconds`, `--device`, `--threads`, `--algos`,
+        /// `--unfused`, `--autograd`, `--json` (`mapless-learner bench --help` says more).
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true, value_name = "FLAGS")]
+        args: Vec<String>,
     },
     /// The whole local cluster (`mapless train --preset env1-sac`): environment steps/s and
     /// learner updates/s after start-up, with 1, 2 and 4 actor processes.
@@ -292,7 +274,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Analyze { cmd: AnalyzeCmd::Eqs { trajectories, seed, out, json } } => analyze_eqs(trajectories, seed, out.as_deref(), json),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
-        Cmd::Bench { cmd: BenchCmd::Learner { seconds, device, threads, algos, unfused, autograd, json } } => bench_learner(seconds, &device, &threads, &algos, unfused, autograd, json),
+        Cmd::Bench { cmd: BenchCmd::Learner { args } } => bench_learner(&args),
         Cmd::Bench { cmd: BenchCmd::E2e { actors, seconds, vehicles, set, json } } => bench_e2e(&actors, seconds, vehicles, &set, json),
     }
 }
@@ -579,14 +561,10 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
 }
 
 /// `mapless bench learner` is the learner binary's bench (`mapless-learner bench`, the one
-/// executable that links libtorch), run with the same flags.
-fn bench_learner(seconds: f64, device: &str, threads: &[usize], algos: &[String], unfused: bool, autograd: bool, json: bool) -> Result<()> {
-    let list = |v: &[String]| v.join(",");
-    let mut args = vec!["bench".to_owned(), "--seconds".into(), seconds.to_string(), "--device".into(), device.to_owned()];
-    args.extend(["--threads".into(), list(&threads.iter().map(|t| t.to_string()).collect::<Vec<_>>()), "--algos".into(), list(algos)]);
-    args.extend([(unfused, "--unfused"), (autograd, "--autograd"), (json, "--json")].into_iter().filter(|(on, _)| *on).map(|(_, flag)| flag.to_owned()));
+/// executable that links libtorch), with the same flags.
+fn bench_learner(args: &[String]) -> Result<()> {
     let bin = train::sibling("mapless-learner")?;
-    let status = std::process::Command::new(&bin).args(&args).status().with_context(|| format!("running {}", bin.display()))?;
+    let status = std::process::Command::new(&bin).arg("bench").args(args).status().with_context(|| format!("running {}", bin.display()))?;
     if !status.success() {
         bail!("{} bench failed ({status})", bin.display());
     }
