@@ -26,9 +26,8 @@ if [[ "$(cat "$VENV/.pins" 2>/dev/null)" != "${PINS[*]}" ]]; then
 fi
 
 # 2. Our CLI, and env2 as a ROS map_server map for the peer.
-bash "$ROOT/scripts/setup-torch.sh" >/dev/null   # mapless-learner links libtorch
-# From the repository root, so cargo reads .cargo/config.toml (where libtorch is).
-(cd "$ROOT" && cargo build --release --locked --quiet -p mapless-cli -p mapless-learner -p mapless-actor -p mapless-replay)
+# `mapless` (maps, bench sim) needs no libtorch.
+(cd "$ROOT" && cargo build --release --locked --quiet -p mapless-cli)
 MAPLESS="$ROOT/target/release/mapless"
 mkdir -p "$OUT"
 "$MAPLESS" maps rasterize env2 --resolution 0.05 --out "$OUT" >&2

@@ -49,7 +49,7 @@ if [[ "${PEER_ONLY:-0}" != 1 ]]; then
     # From the repository root, so cargo reads .cargo/config.toml (where libtorch is).
     (cd "$ROOT" && cargo build --release --locked --quiet -p mapless-cli -p mapless-learner) \
         || { echo "run-sb3-peer.sh: building mapless failed" >&2; exit 1; }
-    if "$MAPLESS" bench learner --help > /dev/null 2>&1; then
+    if [[ -x "$ROOT/target/release/mapless-learner" ]] && "$MAPLESS" bench learner --help > /dev/null 2>&1; then
         HAVE_OURS=1
     else
         echo "== ours: skipped (no \`mapless bench learner\` subcommand in this build)" >&2

@@ -12,12 +12,12 @@ use std::time::{Duration, Instant};
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{ProtocolVersion, ServerInfoRequest, ServerInfoResponse};
 
-/// `mapless`, with `mapless-actor` and `mapless-replay` beside it (built on first use with the
-/// same target selection as ./test.sh, so this only relinks).
+/// `mapless`, with `mapless-actor`, `mapless-replay` and `mapless-learner` beside it (built on
+/// first use with the same target selection as ./test.sh, so this only relinks).
 fn mapless() -> PathBuf {
     let exe = PathBuf::from(env!("CARGO_BIN_EXE_mapless"));
     let dir = exe.parent().unwrap().to_path_buf();
-    if !dir.join("mapless-actor").exists() || !dir.join("mapless-replay").exists() {
+    if ["mapless-actor", "mapless-replay", "mapless-learner"].iter().any(|b| !dir.join(b).exists()) {
         let mut cmd = Command::new(env!("CARGO"));
         cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
         if dir.file_name().is_some_and(|n| n == "release") {

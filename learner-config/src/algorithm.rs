@@ -96,7 +96,7 @@ pub struct LearnerConfig {
     /// Evaluate twin critics as one batched network (`baddbmm` over stacked weights) rather
     /// than one after the other. Same parameters and results up to float rounding; purely a
     /// speed choice. Measured on the 2-core reference box, 1 thread, 17 obs / 2 actions,
-    /// 2×256, batch 128 (`examples/bench_updates.rs`), SAC: fused 126 vs 121 updates/s on
+    /// 2×256, batch 128 (`learner/examples/bench_updates.rs`), SAC: fused 126 vs 121 updates/s on
     /// 1 thread (97 vs 119 in a busier run), 180 vs 152 on 2 threads; a wash for DDPG (one
     /// critic) [inferred: true]. Applies to the autograd path (CUDA, `fused_update: false`);
     /// the fused CPU update runs each critic's layers as their own products.

@@ -32,7 +32,8 @@ pub enum ShmError {
     /// last, too large), or the actor id is held by another connected writer.
     #[error("{0}")]
     BadRequest(String),
-    /// The window of unacknowledged batches stayed full until the deadline.
+    /// The window of unacknowledged batches stayed full (`send`), or acks did not all arrive
+    /// (`wait_acks`), before the deadline.
     #[error("{op} waited {waited_ms} ms (deadline reached): {state}")]
     DeadlineExceeded { op: &'static str, waited_ms: u64, state: String },
     /// No ingest serves the service, or the connection broke: reconnect.

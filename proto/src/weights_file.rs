@@ -50,7 +50,7 @@ pub const META_DATA_CRC32: &str = "mapless.data_crc32";
 pub enum WeightsFileError {
     /// Bytes that are not a valid mapless weights file, or a snapshot that cannot be written
     /// as one; `origin` names the file or snapshot.
-    #[error("invalid weights from {origin}: {reason}")]
+    #[error("invalid weights ({origin}): {reason}")]
     Invalid { origin: String, reason: String },
     /// The file system refused.
     #[error("{path}: {error}")]

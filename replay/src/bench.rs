@@ -214,7 +214,7 @@ pub fn resident_bytes() -> u64 {
 }
 
 /// Rows per second stored over iceoryx2 shared memory with `writers` writer threads (each an
-/// [`ShmWriter`](crate::shm::ShmWriter) with its own window of unacknowledged batches), for
+/// [`ShmWriter`](mapless_net::shm::ShmWriter) with its own window of unacknowledged batches), for
 /// about `duration`, into a full table. Uses a private iceoryx2 domain and removes it afterwards.
 pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration) -> Result<f64, ReplayError> {
     use crate::shm::ShmIngest;

@@ -256,10 +256,10 @@ fn janitor(node: Node<ServerSvc>, scan: Duration, stop: &AtomicBool, counters: &
     }
 }
 
-/// A request whose insert is waiting for the rate limiter; retried without decoding again.
 /// Requests taken from the port before any is handled (more than writers × window never wait).
 const MAX_QUEUED: usize = 4096;
 
+/// A request whose insert is waiting for the rate limiter; retried without decoding again.
 struct Stalled {
     request: InsertRequest,
     batch: TransitionBatch,

@@ -29,21 +29,24 @@ pub fn read_gray(path: &Path) -> Result<GrayImage, String> {
     } else {
         return Err("not a PGM (P2/P5) or PNG image".into());
     };
-    let reader = || {
+    let reader = |limits: Limits| {
         let mut r = ImageReader::with_format(Cursor::new(&bytes), format);
-        let mut limits = Limits::default();
-        limits.max_image_width = Some(MAX_SIDE as u32);
-        limits.max_image_height = Some(MAX_SIDE as u32);
         r.limits(limits);
         r
     };
-    // The header first, so that a bad header and a short raster read as what they are.
-    let (w, h) = reader().into_dimensions().map_err(|e| format!("corrupt {name} header: {e}"))?;
+    // The header first (it allocates nothing), so that a bad header, an oversized image and a
+    // short raster each read as what they are.
+    let (w, h) = reader(Limits::no_limits()).into_dimensions().map_err(|e| format!("corrupt {name} header: {e}"))?;
     let (w, h) = (w as usize, h as usize);
     if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE {
         return Err(format!("image size {w}x{h} outside 1..={MAX_SIDE} per side"));
     }
-    let image = reader().decode().map_err(|e| match &e {
+    // The decoder's own limits (512 MiB of pixels by default) bound what a file can make it
+    // allocate; a 20,000² grey map is 400 MB.
+    let mut limits = Limits::default();
+    limits.max_image_width = Some(MAX_SIDE as u32);
+    limits.max_image_height = Some(MAX_SIDE as u32);
+    let image = reader(limits).decode().map_err(|e| match &e {
         image::ImageError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => format!("{name} raster truncated: {w}x{h} pixels expected ({e})"),
         _ if name == "PGM" && e.to_string().to_ascii_lowercase().contains("end") => format!("{name} raster truncated: {w}x{h} pixels expected ({e})"),
         _ => format!("corrupt {name}: {e}"),
@@ -97,7 +100,7 @@ mod tests {
 
     #[test]
     fn oversized_and_other_images_are_refused_by_name() {
-        assert!(read("d.pgm", b"P5\n30000 1\n255\n").unwrap_err().contains("header"));
+        assert!(read("d.pgm", b"P5\n30000 1\n255\n").unwrap_err().contains("image size 30000x1 outside"));
         assert!(read("e.ppm", b"P6\n1 1\n255\nabc").unwrap_err().contains("not a PGM"));
     }
 }

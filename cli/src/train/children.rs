@@ -184,7 +184,7 @@ pub(crate) fn said_addr(said: &[String], prefix: &str) -> Result<SocketAddr> {
     addr.parse().with_context(|| format!("bad address in `{line}`"))
 }
 
-/// `mapless-replay` and `mapless-actor` live next to this executable.
+/// `mapless-replay`, `mapless-learner` and `mapless-actor` live next to this executable.
 pub fn sibling(name: &str) -> Result<PathBuf> {
     let exe = std::env::current_exe()?;
     let p = exe.with_file_name(name);
