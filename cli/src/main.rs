@@ -21,6 +21,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
+use mapless_net::metrics::bench_report;
 use mapless_sim::render::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, RaycastMethod, RewardConfig, World};
 use rand::{Rng, SeedableRng};
@@ -474,16 +475,13 @@ fn bench_sim(map: &str, seconds: f64, vehicles: usize, json: bool) -> Result<()>
         if json {
             let config =
                 serde_json::json!({"map": map, "beams": preset.beams, "fov_deg": preset.fov_rad.to_degrees().round(), "vehicles": vehicles, "threads": 1, "method": "auto", "seconds": r.seconds});
-            report(true, "sim.vehicle_steps_per_s", config, r.steps_per_s().round(), "steps/s");
+            bench_report(true, "sim.vehicle_steps_per_s", config, r.steps_per_s().round(), "steps/s");
         } else {
             println!("  {:<40} {:>12.0} steps/s   ({} steps, {} episodes)", preset.label, r.steps_per_s(), r.steps, r.episodes);
         }
     }
     Ok(())
 }
-
-/// Prints one figure: a JSON line, or a human-readable line.
-use mapless_net::metrics::bench_report as report;
 
 fn bench_e2e(actors: &[usize], seconds: f64, vehicles: usize, set: &[String], json: bool) -> Result<()> {
     if !(seconds > 25.0) || actors.is_empty() || actors.contains(&0) || vehicles == 0 {
@@ -510,8 +508,8 @@ fn bench_e2e(actors: &[usize], seconds: f64, vehicles: usize, set: &[String], js
         let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("summary.json"))?)?;
         let steady = &summary["steady"];
         let config = serde_json::json!({"preset": "env1-sac", "actors": n, "vehicles_per_actor": vehicles, "seconds": steady["seconds"], "cores": std::thread::available_parallelism().map(|c| c.get()).unwrap_or(0)});
-        report(json, "e2e.env_steps_per_s", config.clone(), steady["env_steps_per_s"].as_f64().unwrap_or(f64::NAN), "steps/s");
-        report(json, "e2e.learner_updates_per_s", config, steady["updates_per_s"].as_f64().unwrap_or(f64::NAN), "updates/s");
+        bench_report(json, "e2e.env_steps_per_s", config.clone(), steady["env_steps_per_s"].as_f64().unwrap_or(f64::NAN), "steps/s");
+        bench_report(json, "e2e.learner_updates_per_s", config, steady["updates_per_s"].as_f64().unwrap_or(f64::NAN), "updates/s");
     }
     Ok(())
 }
@@ -528,34 +526,34 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
     // Memory first: later benchmarks leave freed pages the allocator would reuse, hiding growth.
     let (rss, raw) = rb::memory(memory_rows, 17);
     let cfg = serde_json::json!({"obs_dim": 17, "rows": memory_rows, "raw_payload_bytes": raw, "resident_bytes": rss});
-    report(json, "replay.memory_over_raw_payload", cfg, rss as f64 / raw as f64, "ratio");
+    bench_report(json, "replay.memory_over_raw_payload", cfg, rss as f64 / raw as f64, "ratio");
     let (lock_ms, insert_ms) = rb::snapshot_stall_ms(memory_rows)?;
     let cfg = serde_json::json!({"obs_dim": 17, "rows": memory_rows, "snapshots": 3, "insert_rows": 100});
-    report(json, "replay.snapshot_lock_ms", cfg.clone(), lock_ms, "ms");
-    report(json, "replay.insert_worst_ms_during_snapshots", cfg, insert_ms, "ms");
+    bench_report(json, "replay.snapshot_lock_ms", cfg.clone(), lock_ms, "ms");
+    bench_report(json, "replay.insert_worst_ms_during_snapshots", cfg, insert_ms, "ms");
     for obs_dim in [17usize, 203] {
         let v = rb::first_fill_rows_per_s(obs_dim)?;
-        report(json, "replay.first_fill_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "rows": rb::INGEST_TABLE_ROWS, "batch_rows": rb::BATCH_ROWS, "transport": "none"}), v, "rows/s");
+        bench_report(json, "replay.first_fill_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "rows": rb::INGEST_TABLE_ROWS, "batch_rows": rb::BATCH_ROWS, "transport": "none"}), v, "rows/s");
     }
     // Ingest into a full table (every insert evicts), as in a long run.
     for obs_dim in [17usize, 203] {
         for writers in [1usize, 4, 16] {
             let v = rb::shm_ingest_rows_per_s(writers, obs_dim, d)?;
-            report(json, "replay.ingest_shm_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS, "writer": "thread"}), v, "rows/s");
+            bench_report(json, "replay.ingest_shm_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS, "writer": "thread"}), v, "rows/s");
         }
     }
     for obs_dim in [17usize, 203] {
         for writers in [1usize, 4, 16] {
             let v = rb::grpc_ingest_rows_per_s(writers, obs_dim, d);
-            report(json, "replay.ingest_grpc_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS}), v, "rows/s");
+            bench_report(json, "replay.ingest_grpc_rows_per_s", serde_json::json!({"obs_dim": obs_dim, "writers": writers, "batch_rows": rb::BATCH_ROWS}), v, "rows/s");
         }
     }
     for obs_dim in [17usize, 203] {
         let s = rb::grpc_sample(100_000, obs_dim, 128, 4, d);
         let cfg = serde_json::json!({"obs_dim": obs_dim, "batch_size": 128, "prefetch": 4, "table_rows": 100_000, "transport": "grpc"});
-        report(json, "replay.sample_minibatches_per_s", cfg.clone(), s.minibatches_per_s, "minibatches/s");
-        report(json, "replay.sample_latency_p50_us", cfg.clone(), s.p50_us, "us");
-        report(json, "replay.sample_latency_p99_us", cfg, s.p99_us, "us");
+        bench_report(json, "replay.sample_minibatches_per_s", cfg.clone(), s.minibatches_per_s, "minibatches/s");
+        bench_report(json, "replay.sample_latency_p50_us", cfg.clone(), s.p50_us, "us");
+        bench_report(json, "replay.sample_latency_p99_us", cfg, s.p99_us, "us");
     }
     Ok(())
 }

@@ -40,11 +40,8 @@ mod children;
 mod config;
 pub(crate) mod episodes;
 
-pub use children::sibling;
 pub(crate) use children::*;
 pub(crate) use config::*;
-pub use config::{TrainArgs, read_run_config};
-
 pub(crate) use episodes::*;
 
 /// An evaluation of the newest policy while training, on its own thread.
