@@ -1,5 +1,6 @@
-//! The supervised child processes: spawning, their log lines, the address each service says
-//! it bound, restarts, and the pid file.
+//! A supervised child process: spawning it into its own process group with its log file, its
+//! stdout lines forwarded, the address a service says it bound, stopping it (SIGTERM, then
+//! SIGKILL). What happens when one exits is `restart.rs`'s.
 
 use std::fs;
 use std::io::{BufRead, BufReader};
@@ -10,10 +11,6 @@ use std::sync::mpsc as std_mpsc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-
-// ---------------------------------------------------------------------------------------------
-// Children
-// ---------------------------------------------------------------------------------------------
 
 /// A supervised child process. Dropping it stops the process (so an error in the supervisor
 /// never leaves a cluster behind).
@@ -103,32 +100,6 @@ impl Proc {
             let _ = r.join();
         }
     }
-
-    /// After an exit: restart at once if it had run for a while, otherwise with a backoff
-    /// (1 s doubling to 30 s). Fails after 10 quick failures in a row.
-    pub(crate) fn restart_when_due(&mut self, on_line: Option<std_mpsc::Sender<(String, String)>>) -> Result<bool> {
-        if let Some(t) = self.not_before {
-            if Instant::now() < t {
-                return Ok(false);
-            }
-            self.not_before = None;
-            self.start(on_line)?;
-            return Ok(true);
-        }
-        if self.started_at.elapsed() < Duration::from_secs(10) {
-            self.quick_failures += 1;
-            if self.quick_failures >= 10 {
-                bail!("{} failed within 10 s of starting 10 times in a row; see {}", self.role, self.log.display());
-            }
-            let wait = Duration::from_secs(1 << (self.quick_failures - 1).min(5)).min(Duration::from_secs(30));
-            self.not_before = Some(Instant::now() + wait);
-            tracing::warn!(child = %self.role, retry_in_s = wait.as_secs(), "exited soon after starting; restarting after a pause");
-            return Ok(false);
-        }
-        self.quick_failures = 0;
-        self.start(on_line)?;
-        Ok(true)
-    }
 }
 
 /// Waits for a line from `role` that starts with `prefix`; returns every line `role` printed
@@ -192,20 +163,4 @@ pub fn sibling(name: &str) -> Result<PathBuf> {
         return Ok(p);
     }
     bail!("{} not found next to {} — build all binaries: `cargo build --release --bins` (run.sh does)", name, exe.display())
-}
-
-/// Restarts a service child (learner, replay) that exited, at most 3 times.
-pub(crate) fn restart_service(p: &mut Proc, st: std::process::ExitStatus, how: &str, on_line: std_mpsc::Sender<(String, String)>) -> Result<()> {
-    eprintln!();
-    if p.restarts >= 3 {
-        bail!("the {} exited ({st}) for the 4th time; see {}", p.role, p.log.display());
-    }
-    tracing::warn!(status = %st, "{} exited; restarting it {how}", p.role);
-    p.restarts += 1;
-    p.start(Some(on_line))
-}
-
-/// Restarts of all children so far.
-pub(crate) fn total_restarts(replay: &Proc, learner: &Proc, actors: &[Proc]) -> u32 {
-    actors.iter().map(|a| a.restarts).sum::<u32>() + learner.restarts + replay.restarts
 }

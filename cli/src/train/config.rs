@@ -3,7 +3,6 @@
 
 use std::fs;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use mapless_actor::NoiseConfig;
@@ -12,7 +11,6 @@ use mapless_replay::TableConfig;
 use mapless_sim::{EnvConfig, RewardConfig};
 use serde::{Deserialize, Serialize};
 
-use super::episodes::{EpisodeRow, trailing_mean};
 use crate::protocol;
 
 /// Built-in presets: name → YAML (the files under `presets/`).
@@ -84,23 +82,6 @@ impl StopCriteria {
         (self.eval_eqs.is_some() || self.eval_ees.is_some()).then_some(protocol::EvalGoal { eqs: self.eval_eqs, ees: self.eval_ees, max_collisions: self.eval_max_collisions })
     }
 }
-
-/// Have the stop criteria on moving averages been met?
-pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria) -> bool {
-    if stop.average_return.is_none() && stop.average_steps.is_none() {
-        return false;
-    }
-    if rows.len() < stop.window {
-        return false;
-    }
-    let r = trailing_mean(rows.iter().map(|e| e.episode_return), stop.window);
-    let s = trailing_mean(rows.iter().map(|e| f64::from(e.steps)), stop.window);
-    stop.average_return.is_none_or(|g| r >= g) && stop.average_steps.is_none_or(|g| s >= g)
-}
-
-/// Shortest time between two evaluations of the stop criterion (they run while training goes
-/// on; 10 episodes of 1000 steps take about a second).
-pub(crate) const GATE_EVAL_COOLDOWN: Duration = Duration::from_secs(20);
 
 /// Actor processes.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -494,4 +475,222 @@ pub(crate) fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, boo
         expand_shorthands(&mut doc, true)?;
     }
     Ok((parse_config(doc)?.resolve()?, run, resuming))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mapless_actor::run::{ActorConfig, ReplayTarget};
+    use mapless_learner_config::LearnerServiceConfig;
+    use mapless_replay::server::ServerConfig;
+
+    /// deploy/config/ (the compose cluster) is written by hand; it must keep parsing, pass each
+    /// service's checks (TLS and token beyond loopback) and run the env1-sac preset's settings.
+    #[test]
+    fn the_compose_configs_parse_validate_and_match_the_env1_sac_preset() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/config");
+        let read = |f: &str| fs::read_to_string(dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+        fn yaml<T: Serialize>(v: &T) -> serde_yaml::Value {
+            serde_yaml::to_value(v).expect("serializes")
+        }
+        let preset = preset_config("env1-sac").unwrap();
+        let preset = preset.resolve().unwrap();
+
+        let replay = ServerConfig::from_yaml_file(&dir.join("replay.yaml")).unwrap();
+        replay.validate().expect("replay.yaml passes the service's checks");
+        assert!(!replay.listen.ip().is_loopback() && replay.tls.is_some() && replay.auth_token_file.is_some());
+        assert_eq!(yaml(&replay.table), yaml(&preset.replay), "replay.yaml: the preset's table and rate limiter");
+
+        let learner: LearnerServiceConfig = serde_yaml::from_str(&read("learner.yaml")).unwrap();
+        assert_eq!(yaml(&learner.learner), yaml(&LearnerConfig { seed: preset.seed, ..preset.learner.clone() }), "learner.yaml: the preset's learner");
+        assert_eq!(yaml(&learner.driver), yaml(&preset.driver));
+        assert!(learner.replay.starts_with("https://") && learner.replay_security.tls_ca_file.is_some() && learner.replay_security.token_file.is_some());
+        assert!(learner.tls.is_some() && learner.auth_token_file.is_some(), "weights beyond loopback need TLS and a token");
+
+        let actor: ActorConfig = serde_yaml::from_str(&read("actor.yaml")).unwrap();
+        actor.validate().expect("actor.yaml passes the actor's checks");
+        assert_eq!(yaml(&actor.env), yaml(&preset.env), "actor.yaml: the preset's environment");
+        assert_eq!(actor.map, preset.map);
+        assert_eq!(yaml(&actor.exploration.noise), yaml(&preset.noise()));
+        assert!(matches!(&actor.replay, ReplayTarget::Grpc { uri } if uri.starts_with("https://")));
+        assert!(actor.weights.starts_with("https://") && actor.security.tls_ca_file.is_some() && actor.security.token_file.is_some());
+    }
+
+    #[test]
+    fn every_preset_resolves_and_names_itself() {
+        for (name, _) in PRESETS {
+            let cfg = preset_config(name).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let cfg = cfg.resolve().unwrap_or_else(|e| panic!("{name}: {e:#}"));
+            assert_eq!(&cfg.name, name);
+            assert_eq!(cfg.replay.obs_dim, 17, "{name}: 7 beams → 17 observation values");
+        }
+        let sar = preset_config("outdoor20-sac").unwrap();
+        assert_eq!(sar.resolve().unwrap().env.reward, RewardConfig::search_and_rescue());
+        let env2 = preset_config("env2-td3").unwrap();
+        let env2 = env2.resolve().unwrap();
+        assert_eq!((env2.env.episode.max_steps, env2.learner.algorithm), (2000, AlgorithmKind::Td3));
+        assert_eq!(env2.noise(), NoiseConfig::TD3_DEFAULT);
+    }
+
+    #[test]
+    fn set_overrides_nested_fields_and_rejects_bad_paths() {
+        let mut doc: serde_yaml::Value = serde_yaml::from_str(preset_text("env1-sac").unwrap().as_str()).unwrap();
+        set_path(&mut doc, "learner.actor_lr", "1e-4").unwrap();
+        set_path(&mut doc, "replay.rate_limiter.samples_per_insert", "8").unwrap();
+        set_path(&mut doc, "stop.average_return", "null").unwrap();
+        let cfg = parse_config(doc.clone()).unwrap();
+        assert_eq!(cfg.learner.actor_lr, 1e-4);
+        assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(8.0));
+        assert_eq!(cfg.stop.average_return, None);
+        assert!(set_path(&mut doc, "map.inner", "1").is_err(), "map is a string, not a section");
+        set_path(&mut doc, "learner.no_such_field", "1").unwrap();
+        assert!(parse_config(doc).is_err(), "unknown fields are refused");
+    }
+
+    /// Every leaf of a resolved config as (dotted path, value).
+    fn leaves(v: &serde_yaml::Value, path: &str, out: &mut Vec<(String, serde_yaml::Value)>) {
+        match v {
+            serde_yaml::Value::Mapping(m) => {
+                for (k, v) in m {
+                    let k = k.as_str().expect("string keys");
+                    leaves(v, &if path.is_empty() { k.to_owned() } else { format!("{path}.{k}") }, out);
+                }
+            }
+            _ => out.push((path.to_owned(), v.clone())),
+        }
+    }
+
+    /// A different value of the same kind for `path`, if one can be written on a command line.
+    fn another(path: &str, v: &serde_yaml::Value) -> Option<serde_yaml::Value> {
+        use serde_yaml::Value as V;
+        Some(match v {
+            V::Bool(b) => V::Bool(!b),
+            V::Number(n) if n.is_u64() || n.is_i64() => V::from(n.as_i64().unwrap_or(0) + 1),
+            V::Number(n) => V::from(if n.as_f64()? == 0.0 { 0.5 } else { n.as_f64()? * 1.25 }),
+            V::String(s) if path == "learner.algorithm" => V::from(if s == "td3" { "ddpg" } else { "td3" }),
+            V::String(s) if path == "map" || path == "eval.map" => V::from(if s == "env2" { "env3" } else { "env2" }),
+            V::String(s) => V::from(format!("{s}x")),
+            V::Sequence(s) if !s.is_empty() => V::Sequence(Vec::new()),
+            V::Null => V::from(3),
+            _ => return None,
+        })
+    }
+
+    fn lookup<'a>(v: &'a serde_yaml::Value, path: &str) -> Option<&'a serde_yaml::Value> {
+        path.split('.').try_fold(v, |v, k| v.get(k))
+    }
+
+    #[test]
+    fn every_set_path_reaches_the_resolved_config_or_is_refused_by_name() {
+        for preset in ["env1-sac", "env2-ddpg", "outdoor20-sac"] {
+            let (base, ..) = load_config(&train_args(preset, &[])).unwrap();
+            let mut all = Vec::new();
+            leaves(&serde_yaml::to_value(&base).unwrap(), "", &mut all);
+            assert!(all.len() > 80, "{preset}: {} settable paths", all.len());
+            let mut silent = Vec::new();
+            for (path, value) in all {
+                let Some(new) = another(&path, &value) else { continue };
+                let set = format!("{path}={}", serde_yaml::to_string(&new).unwrap().trim());
+                match load_config(&train_args(preset, &[&set])) {
+                    Ok((cfg, ..)) => {
+                        let resolved = serde_yaml::to_value(&cfg).unwrap();
+                        let got = lookup(&resolved, &path);
+                        // A number may come back as the other kind (3 → 3.0).
+                        let same = got == Some(&new) || got.and_then(|g| g.as_f64()).zip(new.as_f64()).is_some_and(|(a, b)| a == b);
+                        if !same {
+                            silent.push(format!("--set {set} resolved to {got:?}"));
+                        }
+                    }
+                    Err(e) => {
+                        let (msg, leaf) = (format!("{e:#}"), path.rsplit('.').next().unwrap());
+                        if !msg.contains(leaf) {
+                            silent.push(format!("--set {set} refused without naming `{leaf}`: {msg}"));
+                        }
+                    }
+                }
+            }
+            assert!(silent.is_empty(), "{preset}: --set paths that do not reach the config:\n{}", silent.join("\n"));
+        }
+        // The reward lives in env.reward: a preset's `reward:` is laid under --set, and a --set
+        // of the shorthand replaces it (then later --set fields apply on top).
+        let (c, ..) = load_config(&train_args("env1-sac", &["env.reward.speed_weight=2"])).unwrap();
+        assert_eq!(c.env.reward, RewardConfig { speed_weight: 2.0, ..RewardConfig::exploration() });
+        let (c, ..) = load_config(&train_args("env1-sac", &["env.reward.speed_weight=2", "reward=search_and_rescue", "env.reward.turn_penalty=1"])).unwrap();
+        assert_eq!(c.env.reward, RewardConfig { turn_penalty: 1.0, ..RewardConfig::search_and_rescue() });
+        let (c, ..) = load_config(&train_args("env2-sac", &["max_steps=3000"])).unwrap();
+        assert_eq!(c.env.episode.max_steps, 3000);
+        // Unknown keys are errors that name them.
+        for (bad, named) in
+            [("learner.no_such_knob=1", "no_such_knob"), ("no_such_section.x=1", "no_such_section"), ("env.reward.no_such_weight=1", "no_such_weight"), ("reward=no_such_reward", "no_such_reward")]
+        {
+            let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
+            assert!(e.contains(named), "--set {bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_run_folder_written_by_an_older_version_still_reads_and_resumes() {
+        // What config.yaml held before the knobs got one home: the shorthands beside env, the
+        // learner's unread replay_capacity, an empty actors.noise, the derived seed and dims.
+        let dir = tempfile::tempdir().unwrap();
+        let (cfg, ..) = load_config(&train_args("env1-sac", &["seed=3"])).unwrap();
+        let mut doc = serde_yaml::to_value(&cfg).unwrap();
+        let m = doc.as_mapping_mut().unwrap();
+        m.insert("reward".into(), "exploration".into());
+        m.insert("max_steps".into(), 1000.into());
+        set_path(&mut doc, "learner.replay_capacity", "1000000").unwrap();
+        set_path(&mut doc, "actors.noise", "null").unwrap();
+        std::fs::write(dir.path().join("config.yaml"), serde_yaml::to_string(&doc).unwrap()).unwrap();
+        let back = read_run_config(dir.path()).unwrap().resolve().unwrap();
+        assert_eq!(back, cfg, "read back as it was resolved");
+        let mut args = train_args("env1-sac", &["seed=5", "env.sensor.beams=9"]);
+        args.resume = Some(dir.path().to_owned());
+        let (resumed, _, resuming) = load_config(&args).unwrap();
+        assert!(resuming);
+        assert_eq!((resumed.seed, resumed.learner.seed, resumed.replay.obs_dim), (5, 5, 21), "derived values follow what they derive from");
+        // An actors.noise that said something is refused by name, with where it lives now.
+        set_path(&mut doc, "actors.noise", "{kind: gaussian, sigma: 0.2}").unwrap();
+        std::fs::write(dir.path().join("config.yaml"), serde_yaml::to_string(&doc).unwrap()).unwrap();
+        let e = format!("{:#}", read_run_config(dir.path()).unwrap_err());
+        assert!(e.contains("actors.noise") && e.contains("learner.td3.exploration"), "{e}");
+    }
+
+    fn train_args(preset: &str, set: &[&str]) -> TrainArgs {
+        TrainArgs {
+            preset: preset.into(),
+            actors: None,
+            vehicles: None,
+            episodes: None,
+            minutes: None,
+            run: None,
+            resume: None,
+            set: set.iter().map(|s| (*s).to_owned()).collect(),
+            force: false,
+            print_config: false,
+        }
+    }
+
+    #[test]
+    fn a_presets_replay_section_is_laid_over_the_defaults_field_by_field() {
+        // Every preset states its update-to-data ratio; the table's other fields stay this
+        // command's defaults (they were replaced by TableConfig::default() when a preset named
+        // `replay:`).
+        for (name, _) in PRESETS {
+            let (cfg, _, _) = load_config(&train_args(name, &[])).unwrap();
+            let d = default_table();
+            assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(32.0), "{name}");
+            assert_eq!((cfg.replay.rate_limiter.min_size_to_sample, cfg.replay.max_batch_rows), (d.rate_limiter.min_size_to_sample, d.max_batch_rows), "{name}");
+            assert_eq!(cfg.driver, DriverConfig::default(), "{name}");
+        }
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["replay.rate_limiter.samples_per_insert=128", "driver.publish_every=10"])).unwrap();
+        assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(128.0));
+        assert_eq!(cfg.replay.rate_limiter.error_buffer, default_table().rate_limiter.error_buffer);
+        assert_eq!((cfg.driver.publish_every, cfg.driver.checkpoint_every), (10, DriverConfig::default().checkpoint_every));
+        // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=200"])).unwrap();
+        assert_eq!(cfg.replay.max_batch_rows, 64 + 200);
+        // ... and with the paper's ratio too, the limiter's slack must then grow: a clear error.
+        let err = load_config(&train_args("env1-sac", &["actors.vehicles=200", "replay.rate_limiter.samples_per_insert=128"])).unwrap_err();
+        assert!(format!("{err:#}").contains("error_buffer"), "{err:#}");
+    }
 }

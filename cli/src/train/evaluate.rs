@@ -1,0 +1,306 @@
+//! Evaluations of the run's policy: of the newest one every `eval.every_minutes` while training,
+//! of a copy of it whenever the moving averages hold and the stop criterion asks for an
+//! evaluation, of the final one at the end; each recorded as a line of `evals.csv`.
+//! Those made while training run on threads of their own: they must not hold up the
+//! supervision.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use indicatif::ProgressBar;
+use mapless_sim::EnvConfig;
+use serde::Serialize;
+
+use super::config::{EvalSettings, TrainConfig};
+use super::episodes::truncate_torn_line;
+use super::status::{Milestone, Status};
+use crate::eval::{self, EvalSummary};
+
+/// Shortest time between two evaluations of the stop criterion (they run while training goes
+/// on; 10 episodes of 1000 steps take about a second).
+pub(crate) const GATE_EVAL_COOLDOWN: Duration = Duration::from_secs(20);
+
+/// An evaluation of the newest policy while training, on its own thread.
+struct ProgressEval {
+    wall_s: f64,
+    handle: JoinHandle<Result<EvalSummary>>,
+}
+
+impl ProgressEval {
+    /// Waits for it and records it in `evals.csv`; a failed or panicked evaluation is logged.
+    fn finish(self, run: &Path) -> Result<()> {
+        match self.handle.join() {
+            Ok(Ok(s)) => {
+                tracing::info!(policy_version = s.policy_version, "evaluation while training: {}", s.one_line());
+                append_eval(run, self.wall_s, "progress", &s)?;
+            }
+            Ok(Err(e)) => tracing::warn!(error = %format!("{e:#}"), "evaluation while training failed"),
+            Err(_) => tracing::warn!("evaluation while training panicked"),
+        }
+        Ok(())
+    }
+}
+
+/// An evaluation of the stop criterion, on a copy of the policy it judges; `at` is the point of
+/// training it judges (taken when the policy was copied).
+struct GateEval {
+    at: Milestone,
+    handle: JoinHandle<Result<EvalSummary>>,
+}
+
+/// The run's evaluations.
+pub(crate) struct Evaluations {
+    run: PathBuf,
+    /// `eval.map`, or the training map.
+    map: String,
+    env: EnvConfig,
+    /// The evaluation seed (the run's, offset): every evaluation of a run meets the same starts.
+    seed: u64,
+    settings: EvalSettings,
+    /// Episodes of an evaluation of the stop criterion.
+    gate_episodes: u32,
+    /// The evaluation running now, if any, and when the last one ended.
+    progress: Option<ProgressEval>,
+    last_progress: Instant,
+    gate: Option<GateEval>,
+    last_gate: Option<Instant>,
+}
+
+impl Evaluations {
+    pub(crate) fn new(cfg: &TrainConfig, run: &Path) -> Evaluations {
+        Evaluations {
+            run: run.to_owned(),
+            map: cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone()),
+            env: cfg.env.clone(),
+            seed: cfg.seed.wrapping_add(1_000_003),
+            settings: cfg.eval.clone(),
+            gate_episodes: cfg.stop.eval_episodes,
+            progress: None,
+            last_progress: Instant::now(),
+            gate: None,
+            last_gate: None,
+        }
+    }
+
+    /// The policy the learner publishes (and replaces as it goes).
+    fn policy(&self) -> PathBuf {
+        self.run.join("policy.safetensors")
+    }
+
+    /// The copy of the policy that an evaluation of the stop criterion judges.
+    fn gate_policy(&self) -> PathBuf {
+        self.run.join("policy-criteria.safetensors")
+    }
+
+    /// The evaluation of the newest policy as the run goes: records one that ended, starts the
+    /// next when `eval.every_minutes` have passed since (its trajectories drawn into eval/).
+    /// What it logs goes `above` the progress line.
+    pub(crate) fn progress_tick(&mut self, status: &Status, above: &ProgressBar) -> Result<()> {
+        if self.progress.as_ref().is_some_and(|p| p.handle.is_finished()) {
+            let p = self.progress.take().expect("checked");
+            above.suspend(|| p.finish(&self.run))?;
+            self.last_progress = Instant::now();
+        }
+        if let Some(every) = self.settings.every_minutes
+            && self.settings.progress_episodes > 0
+            && self.progress.is_none()
+            && self.last_progress.elapsed().as_secs_f64() >= every * 60.0
+            && self.policy().exists()
+        {
+            let (policy, map, env, n, seed, out) = (self.policy(), self.map.clone(), self.env.clone(), self.settings.progress_episodes, self.seed, self.run.join("eval"));
+            let handle = std::thread::Builder::new().name("eval".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, Some(&out)))?;
+            self.progress = Some(ProgressEval { wall_s: status.wall_s(), handle });
+        }
+        Ok(())
+    }
+
+    /// An evaluation of the newest policy still running at the end: it ends first (a few
+    /// episodes; it writes into eval/ too).
+    pub(crate) fn finish_progress(&mut self) -> Result<()> {
+        match self.progress.take() {
+            Some(p) => p.finish(&self.run),
+            None => Ok(()),
+        }
+    }
+
+    /// Whether an evaluation of the stop criterion may start now: none running, the last one
+    /// ended at least [`GATE_EVAL_COOLDOWN`] ago, and the learner has published a policy.
+    pub(crate) fn gate_may_start(&self) -> bool {
+        self.gate.is_none() && self.last_gate.is_none_or(|t| t.elapsed() >= GATE_EVAL_COOLDOWN) && self.policy().exists()
+    }
+
+    /// Starts an evaluation of the stop criterion on a copy of the newest policy (the learner
+    /// keeps replacing policy.safetensors); `at` is this point of training.
+    pub(crate) fn start_gate(&mut self, at: Milestone) -> Result<()> {
+        let gate_policy = self.gate_policy();
+        fs::copy(self.policy(), &gate_policy).with_context(|| format!("copying the policy to {}", gate_policy.display()))?;
+        let (map, env, n, seed) = (self.map.clone(), self.env.clone(), self.gate_episodes, self.seed);
+        let handle = std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&gate_policy, &map, &env, n, seed, None))?;
+        self.gate = Some(GateEval { at, handle });
+        Ok(())
+    }
+
+    /// An evaluation of the stop criterion that has ended, recorded (a `criteria` line of
+    /// `evals.csv`), with the point of training it judged; one that failed is logged and
+    /// yields nothing. What it logs goes `above` the progress line.
+    pub(crate) fn gate_ended(&mut self, status: &Status, above: &ProgressBar) -> Result<Option<(Milestone, EvalSummary)>> {
+        let Some(g) = self.gate.take_if(|g| g.handle.is_finished()) else { return Ok(None) };
+        self.last_gate = Some(Instant::now());
+        above.suspend(|| self.record_gate(g, status))
+    }
+
+    /// An evaluation of the stop criterion still running when the run stopped: it ends first.
+    pub(crate) fn gate_after_stop(&mut self, status: &Status) -> Result<Option<(Milestone, EvalSummary)>> {
+        match self.gate.take() {
+            Some(g) => self.record_gate(g, status),
+            None => Ok(None),
+        }
+    }
+
+    fn record_gate(&self, g: GateEval, status: &Status) -> Result<Option<(Milestone, EvalSummary)>> {
+        match g.handle.join() {
+            Ok(Ok(s)) => {
+                append_eval(&self.run, status.wall_s(), "criteria", &s)?;
+                Ok(Some((g.at, s)))
+            }
+            Ok(Err(e)) => {
+                tracing::warn!(error = %format!("{e:#}"), "evaluation of the stop criterion failed");
+                Ok(None)
+            }
+            Err(_) => {
+                tracing::warn!("evaluation of the stop criterion panicked");
+                Ok(None)
+            }
+        }
+    }
+
+    /// A run stopped by its criteria keeps the policy that met them as its policy; the
+    /// learner's last one (a few seconds of training later) stays beside it as
+    /// `policy-last.safetensors`.
+    pub(crate) fn keep_the_policy_that_met_the_criteria(&self) -> Result<()> {
+        let (policy, last, gate_policy) = (self.policy(), self.run.join("policy-last.safetensors"), self.gate_policy());
+        if policy.exists() {
+            fs::rename(&policy, &last).with_context(|| format!("renaming {}", policy.display()))?;
+        }
+        fs::copy(&gate_policy, &policy).with_context(|| format!("copying {} to {}", gate_policy.display(), policy.display()))?;
+        Ok(())
+    }
+
+    /// The evaluation of the final policy (`eval.episodes`, deterministic; none with 0 or
+    /// without a policy); its pictures replace those in eval/. A failed one is logged.
+    pub(crate) fn final_evaluation(&self, status: &Status) -> Result<Option<EvalSummary>> {
+        if self.settings.episodes == 0 || !self.policy().exists() {
+            return Ok(None);
+        }
+        // Only this evaluation's pictures remain.
+        if let Ok(dir) = fs::read_dir(self.run.join("eval")) {
+            for f in dir.flatten() {
+                if f.file_name().to_string_lossy().starts_with("episode-") {
+                    let _ = fs::remove_file(f.path());
+                }
+            }
+        }
+        let map = &self.map;
+        eprintln!("evaluating the final policy: {} episodes on {map} (deterministic) ...", self.settings.episodes);
+        match eval::evaluate(&self.policy(), map, &self.env, self.settings.episodes, self.seed, Some(&self.run.join("eval"))) {
+            Ok(s) => {
+                eprintln!("  {}", s.one_line());
+                append_eval(&self.run, status.wall_s(), "final", &s)?;
+                Ok(Some(s))
+            }
+            Err(e) => {
+                tracing::warn!(error = %format!("{e:#}"), "evaluation failed");
+                Ok(None)
+            }
+        }
+    }
+}
+
+/// A row of `evals.csv`: one per evaluation (while training, of the criterion, and final).
+#[derive(Serialize)]
+struct EvalLine<'a> {
+    wall_s: f64,
+    kind: &'a str,
+    policy_version: u64,
+    map: &'a str,
+    episodes: usize,
+    mean_steps: f64,
+    mean_return: f64,
+    mean_eqs: f64,
+    mean_ees: f64,
+    mean_distance_m: f64,
+    collisions: u32,
+}
+
+fn append_eval(run: &Path, wall_s: f64, kind: &str, s: &EvalSummary) -> Result<()> {
+    let path = run.join("evals.csv");
+    // As episodes.csv: a line a crash tore is cut, the header goes into an empty file only.
+    truncate_torn_line(&path)?;
+    let empty = fs::metadata(&path).map_or(true, |m| m.len() == 0);
+    let f = fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
+    let mut w = csv::WriterBuilder::new().has_headers(empty).from_writer(f);
+    w.serialize(EvalLine {
+        wall_s,
+        kind,
+        policy_version: s.policy_version,
+        map: &s.map,
+        episodes: s.episodes.len(),
+        mean_steps: s.mean_steps,
+        mean_return: s.mean_return,
+        mean_eqs: s.mean_eqs,
+        mean_ees: s.mean_ees,
+        mean_distance_m: s.mean_distance_m,
+        collisions: s.collisions,
+    })?;
+    w.flush()?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn evals_csv_gets_one_header_and_loses_only_a_torn_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = EvalSummary {
+            map: "maps/a,b.yaml".into(),
+            policy_version: 7,
+            episodes: Vec::new(),
+            mean_steps: 1000.0,
+            mean_return: 400.0,
+            mean_eqs: 120.0,
+            mean_ees: 2.5,
+            mean_distance_m: 49.0,
+            mean_shaded_time_s: 0.0,
+            collisions: 0,
+        };
+        append_eval(dir.path(), 10.0, "progress", &s).unwrap();
+        let p = dir.path().join("evals.csv");
+        let torn = format!("{}20.0,progr", std::fs::read_to_string(&p).unwrap());
+        std::fs::write(&p, torn).unwrap();
+        append_eval(dir.path(), 30.0, "final", &s).unwrap();
+        let mut r = csv::Reader::from_path(&p).unwrap();
+        assert_eq!(r.headers().unwrap().iter().next(), Some("wall_s"));
+        let rows: Vec<csv::StringRecord> = r.records().map(|x| x.unwrap()).collect();
+        let kinds: Vec<(&str, &str)> = rows.iter().map(|x| (&x[1], &x[3])).collect();
+        assert_eq!(kinds, [("progress", "maps/a,b.yaml"), ("final", "maps/a,b.yaml")], "a map path with a comma stays one field");
+    }
+
+    #[test]
+    fn the_criteria_policy_becomes_the_runs_and_the_last_one_stays_beside_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = super::super::config::preset_config("env1-sac").unwrap();
+        let evals = Evaluations::new(&cfg, dir.path());
+        assert!(!evals.gate_may_start(), "no policy published yet");
+        std::fs::write(dir.path().join("policy.safetensors"), "last").unwrap();
+        assert!(evals.gate_may_start());
+        std::fs::write(dir.path().join("policy-criteria.safetensors"), "met").unwrap();
+        evals.keep_the_policy_that_met_the_criteria().unwrap();
+        let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+        assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("met".to_owned(), "last".to_owned()));
+    }
+}
