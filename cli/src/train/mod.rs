@@ -716,7 +716,7 @@ fn write_pids(run: &Path, replay: &Proc, learner: &Proc, actors: &[Proc]) -> Res
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mapless_actor::NoiseConfig;
+    use mapless_learner_config::ExplorationNoise;
     use mapless_learner_config::{AlgorithmKind, DriverConfig};
     use mapless_sim::RewardConfig;
 
@@ -781,7 +781,7 @@ mod tests {
         let env2 = preset_config("env2-td3").unwrap();
         let env2 = env2.resolve().unwrap();
         assert_eq!((env2.env.episode.max_steps, env2.learner.algorithm), (2000, AlgorithmKind::Td3));
-        assert_eq!(env2.noise(), NoiseConfig::TD3_DEFAULT);
+        assert_eq!(env2.noise(), Some(ExplorationNoise::TD3_DEFAULT));
     }
 
     #[test]

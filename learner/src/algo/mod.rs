@@ -475,27 +475,11 @@ impl Explorer {
         self.ou.clear();
     }
 
-    /// Adds the configured noise to `actions` (row-major) and clamps into [−1, 1].
+    /// Adds the configured noise to `actions` (row-major) and clamps into [−1, 1]: the
+    /// actors' implementation ([`ExplorationNoise::apply`]), on this agent's stream.
     pub fn perturb(&mut self, actions: &mut [f32]) {
-        let Some(cfg) = self.cfg else { return };
-        match cfg {
-            ExplorationNoise::Gaussian { sigma } => {
-                for a in actions.iter_mut() {
-                    let z: f64 = StandardNormal.sample(&mut self.rng);
-                    *a = (f64::from(*a) + sigma * z).clamp(-1.0, 1.0) as f32;
-                }
-            }
-            ExplorationNoise::OrnsteinUhlenbeck { theta, sigma, mean, dt } => {
-                if self.ou.len() != actions.len() {
-                    self.ou = vec![mean as f32; actions.len()];
-                }
-                for (a, x) in actions.iter_mut().zip(self.ou.iter_mut()) {
-                    let z: f64 = StandardNormal.sample(&mut self.rng);
-                    let xv = f64::from(*x);
-                    *x = (xv + theta * (mean - xv) * dt + sigma * dt.sqrt() * z) as f32;
-                    *a = (*a + *x).clamp(-1.0, 1.0);
-                }
-            }
+        if let Some(noise) = self.cfg {
+            noise.apply(&mut self.ou, &mut self.rng, actions);
         }
     }
 }
