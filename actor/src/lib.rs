@@ -9,12 +9,11 @@
 //! How it reaches the replay, the learner's weights and the stats collector (endpoints,
 //! security, the shared-memory writer, the weights and stats clients) is `mapless-net`.
 
-pub mod noise;
 pub mod policy;
 pub mod run;
 pub mod sink;
 
-pub use noise::{Noise, NoiseConfig};
+pub use mapless_proto::exploration::{ExplorationNoise, NoiseProcess};
 pub use policy::{ActMode, Head, Policy};
 
 /// Everything an actor can fail with.

@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 
 use crate::sink::{GrpcSink, ShmSink, Sink, SinkStats};
-use crate::{ActMode, Noise, NoiseConfig, Policy};
+use crate::{ActMode, ExplorationNoise, NoiseProcess, Policy};
 
 /// How an actor reaches the replay.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -52,13 +52,14 @@ pub struct ExplorationSettings {
     /// Vehicle-steps of uniform random actions at the start of each actor process (the
     /// policy is used only after these and once weights have arrived).
     pub warmup_steps: u64,
-    /// Noise added to deterministic policies (DDPG: OU, TD3: Gaussian); SAC: none.
-    pub noise: NoiseConfig,
+    /// Noise added to deterministic policies (DDPG: OU, TD3: Gaussian), handed over from the
+    /// algorithm's config (`learner.{ddpg,td3}.exploration`); absent for SAC and evaluation.
+    pub noise: Option<ExplorationNoise>,
 }
 
 impl Default for ExplorationSettings {
     fn default() -> Self {
-        ExplorationSettings { warmup_steps: 1_000, noise: NoiseConfig::None }
+        ExplorationSettings { warmup_steps: 1_000, noise: None }
     }
 }
 
@@ -214,7 +215,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         metrics::spawn(&rt, addr, Arc::new(move || g.render()), stop_rx.clone())?;
     }
     let mut policy: Option<Policy> = None;
-    let mut noise = Noise::new(cfg.exploration.noise, n, 2);
+    let mut noise = NoiseProcess::new(cfg.exploration.noise, n, 2);
     let mut obs = vec![0.0f32; n * d];
     let mut actions = vec![0.0f32; n * 2];
     let mut step_idx: Vec<u32> = vec![0; n];

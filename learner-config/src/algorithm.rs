@@ -157,37 +157,12 @@ impl Default for AdamConfig {
     }
 }
 
-/// Exploration noise added to a deterministic policy's action when acting to explore.
-/// Actions are clamped to [−1, 1] afterwards.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
-#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
-pub enum ExplorationNoise {
-    /// a + σ·N(0, I), independent at every step.
-    Gaussian {
-        /// σ.
-        sigma: f64,
-    },
-    /// Ornstein–Uhlenbeck: x ← x + θ(μ − x)·dt + σ·√dt·N(0, I); a + x. Reset at episode start.
-    OrnsteinUhlenbeck {
-        /// θ, mean attraction.
-        theta: f64,
-        /// σ.
-        sigma: f64,
-        /// μ, the mean the process reverts to.
-        mean: f64,
-        /// dt, the sample time.
-        dt: f64,
-    },
-}
+/// Exploration noise of DDPG and TD3: one type and one implementation, shared with the actors
+/// (`mapless_proto::exploration`).
+pub use mapless_proto::exploration::ExplorationNoise;
 
-impl ExplorationNoise {
-    fn validate(&self, field: &'static str) -> Result<(), ConfigError> {
-        let ok = match *self {
-            Self::Gaussian { sigma } => sigma.is_finite() && sigma >= 0.0,
-            Self::OrnsteinUhlenbeck { theta, sigma, mean, dt } => theta.is_finite() && theta >= 0.0 && sigma.is_finite() && sigma >= 0.0 && mean.is_finite() && dt.is_finite() && dt > 0.0,
-        };
-        if ok { Ok(()) } else { Err(ConfigError::InvalidConfig { field, reason: format!("{self:?}: σ, θ must be finite and ≥ 0, dt > 0") }) }
-    }
+fn check_noise(noise: &ExplorationNoise, field: &'static str) -> Result<(), ConfigError> {
+    noise.check().map_err(|reason| ConfigError::InvalidConfig { field, reason })
 }
 
 /// DDPG (paper §II-A).
@@ -201,7 +176,7 @@ pub struct DdpgConfig {
 
 impl Default for DdpgConfig {
     fn default() -> Self {
-        Self { exploration: ExplorationNoise::OrnsteinUhlenbeck { theta: 0.15, sigma: 0.3, mean: 0.0, dt: 0.1 } }
+        Self { exploration: ExplorationNoise::DDPG_DEFAULT }
     }
 }
 
@@ -224,7 +199,7 @@ pub struct Td3Config {
 
 impl Default for Td3Config {
     fn default() -> Self {
-        Self { exploration: ExplorationNoise::Gaussian { sigma: 0.32 }, target_noise_std: 0.45, target_noise_clip: 0.5, policy_delay: 2 }
+        Self { exploration: ExplorationNoise::TD3_DEFAULT, target_noise_std: 0.45, target_noise_clip: 0.5, policy_delay: 2 }
     }
 }
 
@@ -296,8 +271,8 @@ impl LearnerConfig {
         if !positive(a.eps) {
             return bad("adam.eps", format!("is {}; must be finite and > 0", a.eps));
         }
-        self.ddpg.exploration.validate("ddpg.exploration")?;
-        self.td3.exploration.validate("td3.exploration")?;
+        check_noise(&self.ddpg.exploration, "ddpg.exploration")?;
+        check_noise(&self.td3.exploration, "td3.exploration")?;
         let t = &self.td3;
         if !(t.target_noise_std.is_finite() && t.target_noise_std >= 0.0) {
             return bad("td3.target_noise_std", format!("is {}; must be finite and ≥ 0", t.target_noise_std));

@@ -42,6 +42,25 @@ pub struct Minibatch {
     act_dim: usize,
 }
 
+/// A [`Minibatch`]'s columns as host memory ([`Minibatch::host`]), row-major.
+#[derive(Debug, Clone, Copy)]
+pub struct HostBatch<'a> {
+    /// s, `rows × obs_dim`.
+    pub obs: &'a [f32],
+    /// a, `rows × act_dim`.
+    pub action: &'a [f32],
+    /// r, `rows`.
+    pub reward: &'a [f32],
+    /// s′, `rows × obs_dim`.
+    pub next_obs: &'a [f32],
+    /// 1.0 for a terminal transition, `rows`.
+    pub terminal: &'a [f32],
+    /// Importance-sampling weights, `rows`.
+    pub weights: &'a [f32],
+    /// B.
+    pub rows: usize,
+}
+
 /// A minibatch as borrowed row-major columns, before any check. `importance_weights` and
 /// `keys` may be empty (weights then default to 1, keys to none).
 #[derive(Debug, Clone, Copy)]
@@ -148,6 +167,26 @@ impl Minibatch {
             rows: c.rows,
             obs_dim: c.obs_dim,
             act_dim: c.act_dim,
+        })
+    }
+
+    /// The columns as host slices for the fused CPU updates, or `None` when one is not a
+    /// contiguous CPU f32 tensor (then the libtorch path runs). The slices borrow the batch:
+    /// a batch's columns are never written after it is built, and replacing one needs the
+    /// batch mutably.
+    pub fn host(&self) -> Option<HostBatch<'_>> {
+        fn col(t: &Tensor) -> Option<&[f32]> {
+            // SAFETY: see above.
+            unsafe { crate::cpu::host_slice(t) }
+        }
+        Some(HostBatch {
+            obs: col(&self.obs)?,
+            action: col(&self.action)?,
+            reward: col(&self.reward)?,
+            next_obs: col(&self.next_obs)?,
+            terminal: col(&self.terminal)?,
+            weights: col(&self.weights)?,
+            rows: self.rows,
         })
     }
 

@@ -311,11 +311,16 @@ pub(crate) fn wide<R>(f: impl FnOnce() -> R) -> R {
 
 /// The f32 contents of a contiguous CPU tensor, or `None` for anything else.
 ///
+/// Host access goes through the owners of the buffers, never through this function
+/// directly: [`crate::nets::ParamSet::host`] / [`crate::nets::ParamSet::host_mut`] (a
+/// network's parameters), [`crate::batch::Minibatch::host`] (a batch's columns) and Adam's
+/// own moments. Each ties the slice's lifetime to a borrow of its owner, so the borrow checker
+/// keeps every write (which needs the owner mutably) away from a live slice.
+///
 /// # Safety
 /// Nothing may write the tensor's bytes (through another tensor sharing its storage, or a
-/// [`host_slice_mut`]) while the slice is alive. The fused updates read batch columns, noise
-/// and parameter buffers that only they touch during an update.
-pub unsafe fn host_slice(t: &Tensor) -> Option<&[f32]> {
+/// [`host_slice_mut`]) while the slice is alive.
+pub(crate) unsafe fn host_slice(t: &Tensor) -> Option<&[f32]> {
     if t.device() != tch::Device::Cpu || t.kind() != tch::Kind::Float || !t.is_contiguous() {
         return None;
     }
@@ -325,14 +330,13 @@ pub unsafe fn host_slice(t: &Tensor) -> Option<&[f32]> {
     Some(unsafe { std::slice::from_raw_parts(t.data_ptr() as *const f32, n) })
 }
 
-/// Mutable f32 contents of a contiguous CPU tensor, or `None` for anything else.
+/// Mutable f32 contents of a contiguous CPU tensor, or `None` for anything else. As
+/// [`host_slice`], called only by the owners' accessors.
 ///
 /// # Safety
 /// The slice must be the only live view of these bytes for its lifetime: no other slice of
-/// them, and no tensor operation on a tensor sharing the storage, until it is dropped (the
-/// fused updates hold one network's buffer, or Adam's moments, at a time).
-#[allow(clippy::mut_from_ref)]
-pub unsafe fn host_slice_mut(t: &Tensor) -> Option<&mut [f32]> {
+/// them, and no tensor operation on a tensor sharing the storage, until it is dropped.
+pub(crate) unsafe fn host_slice_mut(t: &mut Tensor) -> Option<&mut [f32]> {
     if t.device() != tch::Device::Cpu || t.kind() != tch::Kind::Float || !t.is_contiguous() {
         return None;
     }
@@ -418,7 +422,8 @@ mod tests {
             let b = if tb { t(n, k, 1.3) } else { t(k, n, 1.3) };
             let want = (if ta { a.tr() } else { a.shallow_clone() }).mm(&if tb { b.tr() } else { b.shallow_clone() });
             let mut c = vec![1.0f32; m * n];
-            gemm(ta, tb, m, n, k, unsafe { host_slice(&a) }.unwrap(), unsafe { host_slice(&b) }.unwrap(), 1.0, &mut c);
+            let (a, b) = (Vec::<f32>::try_from(&a.contiguous().reshape([-1])).unwrap(), Vec::<f32>::try_from(&b.contiguous().reshape([-1])).unwrap());
+            gemm(ta, tb, m, n, k, &a, &b, 1.0, &mut c);
             let want: Vec<f32> = Vec::try_from(&(want + 1.0).reshape([-1])).unwrap();
             close(&c, &want, 1e-5);
         }
@@ -450,7 +455,7 @@ mod tests {
             let want_grad: Vec<f32> = Vec::try_from(&ParamSet::flat_grad(&grads[..grads.len() - 1])).unwrap();
             let want_dx: Vec<f32> = Vec::try_from(&grads[grads.len() - 1].reshape([-1])).unwrap();
 
-            let p = unsafe { host_slice(set.flat()) }.unwrap();
+            let p = set.host().unwrap();
             let xs: Vec<f32> = Vec::try_from(&x.detach().reshape([-1])).unwrap();
             let mut act = Acts::default();
             body.forward(p, &xs, rows, &mut act);

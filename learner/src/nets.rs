@@ -228,6 +228,24 @@ impl ParamSet {
         &self.flat
     }
 
+    /// The flat buffer as host memory, for the fused CPU updates; `None` unless it is a CPU
+    /// f32 buffer. The slice borrows this set, so nothing can write the buffer while it lives:
+    /// every write goes through `&mut self` (an optimiser step through the owning
+    /// `algo::Trained`, a soft update, a restore), and the set never hands out an owning handle
+    /// to its storage.
+    pub fn host(&self) -> Option<&[f32]> {
+        // SAFETY: see above; a shared borrow of the set excludes every writer.
+        unsafe { crate::cpu::host_slice(&self.flat) }
+    }
+
+    /// [`ParamSet::host`], writable: the set is borrowed exclusively for the slice's life.
+    pub fn host_mut(&mut self) -> Option<&mut [f32]> {
+        // SAFETY: the exclusive borrow of the set excludes every other view of the buffer
+        // made through it (the per-parameter views are not used while the slice lives: that
+        // would need the set).
+        unsafe { crate::cpu::host_slice_mut(&mut self.flat) }
+    }
+
     /// Total number of parameters.
     pub fn numel(&self) -> i64 {
         self.flat.size()[0]

@@ -98,10 +98,10 @@ impl Adam {
     /// `lerp`s with weight 1 − β < ½ (m + (1 − β)(g − m)).
     /// Each half of the buffer on its own lane (the step is elementwise: same result).
     pub(crate) fn step_host(&mut self, params: &mut [f32], grad: &[f32], lanes: &crate::lanes::Lanes) {
-        // SAFETY: the moments are this optimiser's own buffers, not shared with any tensor or
-        // slice alive during this call.
-        let m = unsafe { crate::cpu::host_slice_mut(&self.exp_avg) }.expect("Adam moments on the host");
-        let v = unsafe { crate::cpu::host_slice_mut(&self.exp_avg_sq) }.expect("Adam moments on the host");
+        // SAFETY: the moments are this optimiser's own tensors, never handed out (the
+        // checkpoint reads them through `&self`), and `self` is borrowed exclusively here.
+        let m = unsafe { crate::cpu::host_slice_mut(&mut self.exp_avg) }.expect("Adam moments on the host");
+        let v = unsafe { crate::cpu::host_slice_mut(&mut self.exp_avg_sq) }.expect("Adam moments on the host");
         assert!(m.len() == params.len() && v.len() == params.len() && grad.len() == params.len(), "Adam sizes");
         self.step += 1;
         let AdamConfig { beta1, beta2, eps } = self.cfg;

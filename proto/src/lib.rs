@@ -31,6 +31,7 @@
 //! servers and clients live in `mapless-net` and the crates that use it.
 
 mod error;
+pub mod exploration;
 mod floats;
 mod replay;
 mod stats;

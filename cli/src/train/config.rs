@@ -5,7 +5,6 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use mapless_actor::NoiseConfig;
 use mapless_learner_config::{AlgorithmKind, DriverConfig, ExplorationNoise, LearnerConfig};
 use mapless_replay::TableConfig;
 use mapless_sim::{EnvConfig, RewardConfig};
@@ -239,15 +238,11 @@ impl TrainConfig {
 
     /// The actors' exploration noise: the algorithm's own (`learner.{ddpg,td3}.exploration`);
     /// none for SAC, which samples its policy.
-    pub(crate) fn noise(&self) -> NoiseConfig {
-        let e = match self.learner.algorithm {
-            AlgorithmKind::Ddpg => self.learner.ddpg.exploration,
-            AlgorithmKind::Td3 => self.learner.td3.exploration,
-            AlgorithmKind::Sac => return NoiseConfig::None,
-        };
-        match e {
-            ExplorationNoise::Gaussian { sigma } => NoiseConfig::Gaussian { sigma: sigma as f32 },
-            ExplorationNoise::OrnsteinUhlenbeck { theta, sigma, mean, dt } => NoiseConfig::OrnsteinUhlenbeck { theta: theta as f32, sigma: sigma as f32, mean: mean as f32, dt: dt as f32 },
+    pub(crate) fn noise(&self) -> Option<ExplorationNoise> {
+        match self.learner.algorithm {
+            AlgorithmKind::Ddpg => Some(self.learner.ddpg.exploration),
+            AlgorithmKind::Td3 => Some(self.learner.td3.exploration),
+            AlgorithmKind::Sac => None,
         }
     }
 }
@@ -529,7 +524,7 @@ mod tests {
         let env2 = preset_config("env2-td3").unwrap();
         let env2 = env2.resolve().unwrap();
         assert_eq!((env2.env.episode.max_steps, env2.learner.algorithm), (2000, AlgorithmKind::Td3));
-        assert_eq!(env2.noise(), NoiseConfig::TD3_DEFAULT);
+        assert_eq!(env2.noise(), Some(ExplorationNoise::TD3_DEFAULT));
     }
 
     #[test]

@@ -34,7 +34,6 @@ use super::fused;
 use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
-use crate::cpu::{Body, host_slice};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -42,14 +41,14 @@ use crate::optim::Adam;
 #[derive(Debug)]
 pub struct Ddpg {
     pub(crate) c: Common,
-    actor: Trained,
-    critic: Trained,
-    target_actor: ParamSet,
-    target_critic: ParamSet,
+    pub(super) actor: Trained,
+    pub(super) critic: Trained,
+    pub(super) target_actor: ParamSet,
+    pub(super) target_critic: ParamSet,
     /// Buffers of the fused CPU update ([`LearnerConfig::fused_update`]).
     ///
     /// [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
-    host: fused::Work,
+    pub(super) host: fused::Work,
 }
 
 impl Ddpg {
@@ -72,13 +71,9 @@ impl Ddpg {
         &b.reward + not_done * q_next * self.c.cfg.gamma
     }
 
+    /// One update along the paper's equations with libtorch's autograd (module docs). The
+    /// fused CPU path ([`super::fused`]) takes the same steps.
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
-        if self.c.cfg.fused_update
-            && self.c.device == tch::Device::Cpu
-            && let Some(stats) = self.update_host(b)?
-        {
-            return Ok(stats);
-        }
         let y = self.td_target(b);
         let CriticStep { loss, q_mean, target_mean, grad_norm, td_errors } = critic_step(&mut self.critic, b, &y, &self.c)?;
 
@@ -123,45 +118,5 @@ impl Ddpg {
 
     pub(crate) fn opts_mut(&mut self) -> Vec<(&'static str, &mut Adam)> {
         vec![("actor", &mut self.actor.opt), ("critic", &mut self.critic.opt)]
-    }
-}
-
-impl Ddpg {
-    /// [`Ddpg::update`] through [`super::fused`]'s hand-written passes: the same steps, Adam
-    /// and clipping, results equal up to float rounding. `None` (nothing done) when a batch
-    /// column is not plain host f32.
-    fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
-        let Some(b) = fused::batch(b) else {
-            return Ok(None);
-        };
-        // SAFETY (every `host_slice` below): each slice is read before anything writes its
-        // buffer — a network is written only by its own step (`critic_step`/`actor_step`,
-        // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
-        // soft update after the last read.
-        let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
-        let clip = self.c.cfg.grad_clip_norm;
-        let actor_body = Body::single(o, h, na);
-        let bodies = fused::critic_bodies(1, o, na, h);
-        let w = &mut self.host;
-        let _blas = w.begin();
-
-        // Eq. 2: y = r + γ(1 − terminal) Q_t(s′, tanh π_t(s′)).
-        w.tanh_action(&actor_body, unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows);
-        let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
-        w.critics_forward_at_action(&bodies, tp, b.next_obs, na, rows);
-        w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
-        let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
-
-        // Eqs. 3–5: descend −mean Q(s, tanh π(s)) in θ.
-        let (actor_loss, actor_norm) = w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
-
-        let tau = self.c.cfg.tau;
-        fused::soft_update(&mut self.target_actor, &self.actor.net, tau, &w.lanes);
-        fused::soft_update(&mut self.target_critic, &self.critic.net, tau, &w.lanes);
-        self.c.updates += 1;
-        let mut scalars = vec![(metric::CRITIC_LOSS, critic.loss), (metric::ACTOR_LOSS, actor_loss), (metric::Q_MEAN, critic.q_mean), (metric::TARGET_MEAN, critic.target_mean)];
-        scalars.extend(critic.grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
-        scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
-        Ok(Some(UpdateStats { scalars, td_errors: critic.td_errors }))
     }
 }

@@ -159,6 +159,15 @@ impl Agent {
         if batch.obs_dim() != c.obs_dim || batch.act_dim() != c.act_dim {
             return Err(LearnerError::InvalidBatch(format!("batch has obs_dim {} act_dim {}, this agent learns {}/{}", batch.obs_dim(), batch.act_dim(), c.obs_dim, c.act_dim)));
         }
+        // The one place that chooses the path: the hand-written CPU passes when configured,
+        // on the CPU, and the batch is plain host f32; libtorch's autograd otherwise. Both draw
+        // their noise through the same per-algorithm function, so they agree draw for draw.
+        if c.cfg.fused_update
+            && c.device == tch::Device::Cpu
+            && let Some(host) = batch.host()
+        {
+            return each!(self, a => a.update_fused(&host));
+        }
         each!(self, a => a.update(batch))
     }
 
@@ -418,7 +427,7 @@ impl Common {
         };
         Self {
             init_rng: stream(cfg.seed, STREAM_INIT),
-            noise: NoiseSource { rng: stream(cfg.seed, STREAM_NOISE), buf: Vec::new() },
+            noise: NoiseSource { rng: stream(cfg.seed, STREAM_NOISE) },
             explore: Explorer { cfg: exploration, rng: stream(cfg.seed, STREAM_EXPLORE), ou: Vec::new() },
             cfg,
             obs_dim,
@@ -433,26 +442,17 @@ impl Common {
     }
 }
 
-/// Standard-normal noise tensors drawn from a PCG64 stream on the host (bit-reproducible
-/// across devices and thread counts, and checkpointable, unlike libtorch's generator).
+/// Standard-normal noise drawn from a PCG64 stream on the host (bit-reproducible across
+/// devices and thread counts, and checkpointable, unlike libtorch's generator). Each algorithm
+/// draws an update's noise through one function of its own (`Td3::smoothing_draws`,
+/// `Sac::update_draws`) that both update paths call.
 #[derive(Debug)]
 pub(crate) struct NoiseSource {
     pub rng: Pcg64,
-    buf: Vec<f32>,
 }
 
 impl NoiseSource {
-    /// `[rows, cols]` of N(0, 1) on `device`.
-    pub fn normal(&mut self, rows: usize, cols: usize, device: tch::Device) -> Tensor {
-        let mut buf = std::mem::take(&mut self.buf);
-        self.fill(&mut buf, rows * cols);
-        let t = Tensor::from_slice(&buf).view([rows as i64, cols as i64]).to_device(device);
-        self.buf = buf;
-        t
-    }
-
-    /// `n` draws of N(0, 1) into `out` (cleared first): the same stream as [`Self::normal`],
-    /// for the fused updates, which need no tensor.
+    /// `n` draws of N(0, 1) into `out` (cleared first).
     pub fn fill(&mut self, out: &mut Vec<f32>, n: usize) {
         out.clear();
         let rng = &mut self.rng;
@@ -475,27 +475,11 @@ impl Explorer {
         self.ou.clear();
     }
 
-    /// Adds the configured noise to `actions` (row-major) and clamps into [−1, 1].
+    /// Adds the configured noise to `actions` (row-major) and clamps into [−1, 1]: the
+    /// actors' implementation ([`ExplorationNoise::apply`]), on this agent's stream.
     pub fn perturb(&mut self, actions: &mut [f32]) {
-        let Some(cfg) = self.cfg else { return };
-        match cfg {
-            ExplorationNoise::Gaussian { sigma } => {
-                for a in actions.iter_mut() {
-                    let z: f64 = StandardNormal.sample(&mut self.rng);
-                    *a = (f64::from(*a) + sigma * z).clamp(-1.0, 1.0) as f32;
-                }
-            }
-            ExplorationNoise::OrnsteinUhlenbeck { theta, sigma, mean, dt } => {
-                if self.ou.len() != actions.len() {
-                    self.ou = vec![mean as f32; actions.len()];
-                }
-                for (a, x) in actions.iter_mut().zip(self.ou.iter_mut()) {
-                    let z: f64 = StandardNormal.sample(&mut self.rng);
-                    let xv = f64::from(*x);
-                    *x = (xv + theta * (mean - xv) * dt + sigma * dt.sqrt() * z) as f32;
-                    *a = (*a + *x).clamp(-1.0, 1.0);
-                }
-            }
+        if let Some(noise) = self.cfg {
+            noise.apply(&mut self.ou, &mut self.rng, actions);
         }
     }
 }

@@ -43,7 +43,6 @@ use tch::Tensor;
 use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, finite, fused, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
-use crate::cpu::{Body, host_slice, host_slice_mut};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -51,22 +50,22 @@ use crate::optim::Adam;
 pub const CRITICS: i64 = 2;
 
 /// ½ ln 2π.
-const HALF_LN_2PI: f64 = 0.918_938_533_204_672_7;
+pub(super) const HALF_LN_2PI: f64 = 0.918_938_533_204_672_7;
 
 /// A SAC agent. See the module docs for the update.
 #[derive(Debug)]
 pub struct Sac {
     pub(crate) c: Common,
-    actor: Trained,
-    critic: Trained,
-    target_critic: ParamSet,
+    pub(super) actor: Trained,
+    pub(super) critic: Trained,
+    pub(super) target_critic: ParamSet,
     /// One tensor, `log_alpha` `[1]`.
-    log_alpha: Trained,
-    target_entropy: f64,
+    pub(super) log_alpha: Trained,
+    pub(super) target_entropy: f64,
     /// Buffers of the fused CPU update ([`LearnerConfig::fused_update`]), reused every step.
     ///
     /// [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
-    host: (fused::Work, Head),
+    pub(super) host: (fused::Work, fused::Head),
 }
 
 /// A sampled tanh-Gaussian action and its log-density.
@@ -138,16 +137,21 @@ impl Sac {
         &b.reward + not_done * soft_value * self.c.cfg.gamma
     }
 
+    /// The standard normals of one update, `2 · rows · act_dim` into `out`: ε for s′ (the
+    /// targets, eq. 9), then ε for s (the actor, eq. 11), from the agent's noise stream. Both
+    /// paths of [`Sac::update`] draw through here, so the fused update sees the same numbers.
+    pub(crate) fn update_draws(&mut self, rows: usize, out: &mut Vec<f32>) {
+        self.c.noise.fill(out, 2 * rows * self.c.act_dim);
+    }
+
+    /// One update along the paper's equations with libtorch's autograd (module docs). The
+    /// fused CPU path ([`super::fused`]) takes the same steps.
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
-        if self.c.cfg.fused_update
-            && self.c.device == tch::Device::Cpu
-            && let Some(stats) = self.update_host(b)?
-        {
-            return Ok(stats);
-        }
         let (rows, act, device) = (b.rows(), self.c.act_dim, self.c.device);
-        let eps_next = self.c.noise.normal(rows, act, device);
-        let eps_now = self.c.noise.normal(rows, act, device);
+        let mut draws = Vec::new();
+        self.update_draws(rows, &mut draws);
+        let eps = |half: &[f32]| Tensor::from_slice(half).view([rows as i64, act as i64]).to_device(device);
+        let (eps_next, eps_now) = (eps(&draws[..rows * act]), eps(&draws[rows * act..]));
         let alpha = self.alpha();
 
         let y = self.td_target_with_alpha(b, &eps_next, alpha);
@@ -231,167 +235,4 @@ pub fn tanh_gaussian(mean: &Tensor, log_std: &Tensor, eps: &Tensor) -> Sample {
     let log_det = ((-&u * 2.0).softplus() + &u - std::f64::consts::LN_2) * 2.0; // = −ln(1 − tanh²u)
     let log_prob = (gaussian + log_det).sum_dim_intlist(1, true, None);
     Sample { action, log_prob }
-}
-
-// ---------------------------------------------------------------------------------------------
-// The fused CPU update: the same steps 1–4, backward passes written out.
-// ---------------------------------------------------------------------------------------------
-
-/// The tanh-Gaussian head on host memory: for actor outputs `[B, 2·act]` = [μ | raw log σ].
-#[derive(Debug, Default)]
-struct Head {
-    /// u = μ + σε.
-    u: Vec<f32>,
-    /// a = tanh(u).
-    a: Vec<f32>,
-    /// Clamped log σ.
-    log_std: Vec<f32>,
-    /// Whether raw log σ was inside the clamp (its gradient passes).
-    inside: Vec<bool>,
-    /// ln π(a|s) `[B]`.
-    log_prob: Vec<f32>,
-}
-
-impl Head {
-    /// [`tanh_gaussian`] on host memory, the same operations in the same order.
-    fn sample(&mut self, y: &[f32], eps: &[f32], rows: usize, act: usize, lo: f64, hi: f64) {
-        let n = rows * act;
-        for v in [&mut self.u, &mut self.a, &mut self.log_std] {
-            v.resize(n, 0.0);
-        }
-        self.inside.resize(n, false);
-        self.log_prob.resize(rows, 0.0);
-        let (lo32, hi32) = (lo as f32, hi as f32);
-        for r in 0..rows {
-            let mut lp = 0.0f32;
-            for j in 0..act {
-                let (i, mean, raw) = (r * act + j, y[r * 2 * act + j], y[r * 2 * act + act + j]);
-                let ls = raw.clamp(lo32, hi32);
-                self.inside[i] = raw >= lo32 && raw <= hi32; // clamp's backward, bounds in f32
-                let u = mean + ls.exp() * eps[i];
-                self.u[i] = u;
-                self.a[i] = u.tanh();
-                self.log_std[i] = ls;
-                let gaussian = eps[i] * eps[i] * -0.5 - ls - HALF_LN_2PI as f32;
-                let log_det = (softplus(-u * 2.0) + u - std::f32::consts::LN_2) * 2.0;
-                lp += gaussian + log_det;
-            }
-            self.log_prob[r] = lp;
-        }
-    }
-}
-
-/// libtorch's softplus (β 1, threshold 20).
-fn softplus(x: f32) -> f32 {
-    if x > 20.0 { x } else { x.exp().ln_1p() }
-}
-
-/// Its derivative as libtorch's backward computes it.
-fn softplus_grad(x: f32) -> f32 {
-    if x > 20.0 {
-        1.0
-    } else {
-        let z = x.exp();
-        z / (z + 1.0)
-    }
-}
-
-impl Sac {
-    /// One update through [`crate::cpu`]'s hand-written passes: the steps and equations of
-    /// [`Sac::update`]'s libtorch path (module docs), with the same noise draws, Adam and
-    /// clipping; results equal up to float rounding (`tests/algo_targets.rs`, `fused_updates_match_autograd`).
-    /// `None` (nothing done, no noise drawn) when a batch tensor is not plain host f32.
-    fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
-        let Some(b) = fused::batch(b) else {
-            return Ok(None);
-        };
-        // SAFETY (every `host_slice` below): each slice is read before anything writes its
-        // buffer — a network is written only by its own step (`critic_step`/`actor_step`,
-        // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
-        // soft update after the last read.
-        let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
-        // ε for s′, then ε for s: one stream, in the libtorch path's order.
-        let mut eps = std::mem::take(&mut self.host.0.noise);
-        self.c.noise.fill(&mut eps, 2 * rows * na);
-        let (eps_next, eps_now) = eps.split_at(rows * na);
-        let alpha = self.alpha();
-        let alpha32 = alpha as f32;
-        let (lo, hi) = (self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
-        let clip = self.c.cfg.grad_clip_norm;
-        let actor_body = Body::single(o, h, 2 * na);
-        let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
-        let (w, head) = (&mut self.host.0, &mut self.host.1);
-        let _blas = w.begin();
-
-        // The actor on s′ (for the targets) beside the actor on s (for eq. 11; the critic step
-        // in between leaves the actor as it is).
-        let ap = unsafe { host_slice(self.actor.net.flat()) }.expect("host parameters");
-        let (on_next, on_now) = (&mut w.actor_next, &mut w.actor);
-        w.lanes.join(|| actor_body.forward(ap, b.next_obs, rows, on_next), || actor_body.forward(ap, b.obs, rows, on_now));
-
-        // 1. Targets, eq. 9: y = r + γ(1 − terminal)(min_k Q_tk(s′, ã′) − α ln π(ã′|s′)).
-        head.sample(&w.actor_next.y, eps_next, rows, na, lo, hi);
-        let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
-        w.critics_forward(&bodies, tp, b.next_obs, &head.a, na, rows);
-        w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i) - head.log_prob[i] * alpha32);
-
-        // 2. Critics, eq. 6.
-        let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
-
-        // 3. Actor, eq. 11, against the critics just updated: J = mean(α ln π − min_k Q_k).
-        head.sample(&w.actor.y, eps_now, rows, na, lo, hi);
-        let cp = unsafe { host_slice(self.critic.net.flat()) }.expect("host parameters");
-        w.critics_forward(&bodies, cp, b.obs, &head.a, na, rows);
-        let mut actor_loss = 0.0f64;
-        for i in 0..rows {
-            actor_loss += f64::from(head.log_prob[i] * alpha32 - w.min_q(i));
-        }
-        let actor_loss = actor_loss / rows as f64;
-        if !actor_loss.is_finite() {
-            return Err(LearnerError::NonFiniteLoss { what: metric::ACTOR_LOSS, value: actor_loss, update: self.c.updates });
-        }
-        w.min_q_action_grad(&bodies, cp, o, na, rows);
-        // Through the head: a = tanh(u), u = μ + σε,
-        // ln π = Σ −½ε² − ln σ − ½ln 2π + 2(softplus(−2u) + u − ln 2).
-        let dlogp = alpha32 / rows as f32;
-        w.dy.resize(rows * 2 * na, 0.0);
-        for i in 0..rows {
-            for c in 0..na {
-                let n = i * na + c;
-                let (u, a) = (head.u[n], head.a[n]);
-                let dlogdet_du = 2.0 * (1.0 - 2.0 * softplus_grad(-u * 2.0));
-                let du = w.da[n] * (1.0 - a * a) + dlogp * dlogdet_du;
-                let dls = du * eps_now[n] * head.log_std[n].exp() - dlogp;
-                w.dy[i * 2 * na + c] = du;
-                w.dy[i * 2 * na + na + c] = if head.inside[n] { dls } else { 0.0 };
-            }
-        }
-        let actor_norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
-        let (loss, q_mean, target_mean, critic_norm, td_errors) = (critic.loss, critic.q_mean, critic.target_mean, critic.grad_norm, critic.td_errors);
-
-        // 4. α, eq. 10, and the targets: as the libtorch path.
-        let mean_log_prob = head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
-        let alpha_loss = -alpha * (mean_log_prob + self.target_entropy);
-        if self.c.cfg.sac.autotune_alpha {
-            // SAFETY: log α's one-float buffer; no other view of it is alive.
-            let la = unsafe { host_slice_mut(self.log_alpha.net.flat()) }.expect("host parameters");
-            self.log_alpha.opt.step_host(la, &[alpha_loss as f32], &crate::lanes::Lanes::ONE);
-        }
-        fused::soft_update(&mut self.target_critic, &self.critic.net, self.c.cfg.tau, &w.lanes);
-        self.c.updates += 1;
-
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, loss),
-            (metric::ACTOR_LOSS, actor_loss),
-            (metric::ALPHA_LOSS, alpha_loss),
-            (metric::Q_MEAN, q_mean),
-            (metric::TARGET_MEAN, target_mean),
-            (metric::ALPHA, alpha),
-            (metric::ENTROPY, -mean_log_prob),
-        ];
-        scalars.extend(critic_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
-        scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
-        self.host.0.noise = eps;
-        Ok(Some(UpdateStats { scalars, td_errors }))
-    }
 }

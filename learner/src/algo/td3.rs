@@ -32,7 +32,6 @@ use super::fused;
 use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
-use crate::cpu::{Body, host_slice};
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
 use crate::optim::Adam;
 
@@ -43,14 +42,14 @@ pub const CRITICS: i64 = 2;
 #[derive(Debug)]
 pub struct Td3 {
     pub(crate) c: Common,
-    actor: Trained,
-    critic: Trained,
-    target_actor: ParamSet,
-    target_critic: ParamSet,
+    pub(super) actor: Trained,
+    pub(super) critic: Trained,
+    pub(super) target_actor: ParamSet,
+    pub(super) target_critic: ParamSet,
     /// Buffers of the fused CPU update ([`LearnerConfig::fused_update`]).
     ///
     /// [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
-    host: fused::Work,
+    pub(super) host: fused::Work,
 }
 
 impl Td3 {
@@ -63,11 +62,20 @@ impl Td3 {
         Ok(Self { actor: Trained::new(actor, c.cfg.actor_lr, &c), critic: Trained::new(critic, c.cfg.critic_lr, &c), target_actor, target_critic, host: fused::Work::default(), c })
     }
 
-    /// ε of eq. 7 for `rows` transitions: N(0, σ²) clipped to ±c, `[rows, act_dim]`, drawn
-    /// from the agent's noise stream.
+    /// The standard normals behind ε of eq. 7 for `rows` transitions, `rows · act_dim` into
+    /// `out`, from the agent's noise stream. Both paths of an update draw through here (the
+    /// fused one in [`super::fused`]), so they see the same numbers.
+    pub(crate) fn smoothing_draws(&mut self, rows: usize, out: &mut Vec<f32>) {
+        self.c.noise.fill(out, rows * self.c.act_dim);
+    }
+
+    /// ε of eq. 7 for `rows` transitions: N(0, σ²) clipped to ±c, `[rows, act_dim]`
+    /// ([`Td3::smoothing_draws`] scaled and clipped).
     pub fn smoothing_noise(&mut self, rows: usize) -> Tensor {
+        let mut z = Vec::new();
+        self.smoothing_draws(rows, &mut z);
+        let z = Tensor::from_slice(&z).view([rows as i64, self.c.act_dim as i64]).to_device(self.c.device);
         let t = &self.c.cfg.td3;
-        let z = self.c.noise.normal(rows, self.c.act_dim, self.c.device);
         (z * t.target_noise_std).clamp(-t.target_noise_clip, t.target_noise_clip)
     }
 
@@ -81,13 +89,9 @@ impl Td3 {
         &b.reward + not_done * q_next * self.c.cfg.gamma
     }
 
+    /// One update along the paper's equations with libtorch's autograd (module docs). The
+    /// fused CPU path ([`super::fused`]) takes the same steps.
     pub(crate) fn update(&mut self, b: &Minibatch) -> Result<UpdateStats, LearnerError> {
-        if self.c.cfg.fused_update
-            && self.c.device == tch::Device::Cpu
-            && let Some(stats) = self.update_host(b)?
-        {
-            return Ok(stats);
-        }
         let eps = self.smoothing_noise(b.rows());
         let y = self.td_target(b, &eps);
         let CriticStep { loss, q_mean, target_mean, grad_norm, td_errors } = critic_step(&mut self.critic, b, &y, &self.c)?;
@@ -134,52 +138,5 @@ impl Td3 {
 
     pub(crate) fn opts_mut(&mut self) -> Vec<(&'static str, &mut Adam)> {
         vec![("actor", &mut self.actor.opt), ("critic", &mut self.critic.opt)]
-    }
-}
-
-impl Td3 {
-    /// [`Td3::update`] through [`super::fused`]'s hand-written passes: the same steps, noise
-    /// draw, delay schedule, Adam and clipping, results equal up to float rounding. `None`
-    /// (nothing done, no noise drawn) when a batch column is not plain host f32.
-    fn update_host(&mut self, b: &Minibatch) -> Result<Option<UpdateStats>, LearnerError> {
-        let Some(b) = fused::batch(b) else {
-            return Ok(None);
-        };
-        // SAFETY (every `host_slice` below): each slice is read before anything writes its
-        // buffer — a network is written only by its own step (`critic_step`/`actor_step`,
-        // which take the `Trained` mutably, so the borrow checker ends earlier slices) or by a
-        // soft update after the last read.
-        let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
-        let (std, limit) = (self.c.cfg.td3.target_noise_std as f32, self.c.cfg.td3.target_noise_clip as f32);
-        let clip = self.c.cfg.grad_clip_norm;
-        let actor_body = Body::single(o, h, na);
-        let bodies = fused::critic_bodies(CRITICS as usize, o, na, h);
-        let w = &mut self.host;
-        let _blas = w.begin();
-        let mut z = std::mem::take(&mut w.noise);
-        self.c.noise.fill(&mut z, rows * na);
-
-        // Eq. 7: y = r + γ(1 − terminal) min_k Q_tk(s′, clip(tanh π_t(s′) + clip(ε), −1, 1)).
-        actor_body.forward(unsafe { host_slice(self.target_actor.flat()) }.expect("host parameters"), b.next_obs, rows, &mut w.actor);
-        let next: Vec<f32> = w.actor.y.iter().zip(&z).map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0)).collect();
-        w.noise = z;
-        let tp = unsafe { host_slice(self.target_critic.flat()) }.expect("host parameters");
-        w.critics_forward(&bodies, tp, b.next_obs, &next, na, rows);
-        w.targets(&b, self.c.cfg.gamma, |w, i| w.min_q(i));
-        let critic = w.critic_step(&bodies, &mut self.critic, &b, na, clip, self.c.updates)?;
-        self.c.updates += 1;
-        let mut scalars = vec![(metric::CRITIC_LOSS, critic.loss), (metric::Q_MEAN, critic.q_mean), (metric::TARGET_MEAN, critic.target_mean)];
-        scalars.extend(critic.grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
-
-        if self.c.updates.is_multiple_of(self.c.cfg.td3.policy_delay) {
-            // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, tanh π(s)) in θ.
-            let (actor_loss, norm) = w.deterministic_actor_step(&actor_body, &bodies, &mut self.actor, &self.critic.net, &b, o, na, clip, self.c.updates)?;
-            let tau = self.c.cfg.tau;
-            fused::soft_update(&mut self.target_actor, &self.actor.net, tau, &w.lanes);
-            fused::soft_update(&mut self.target_critic, &self.critic.net, tau, &w.lanes);
-            scalars.push((metric::ACTOR_LOSS, actor_loss));
-            scalars.extend(norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
-        }
-        Ok(Some(UpdateStats { scalars, td_errors: critic.td_errors }))
     }
 }

@@ -1,48 +1,39 @@
-//! The pieces the three algorithms' fused CPU updates share ([`LearnerConfig::fused_update`]):
-//! critic stacks evaluated on `[s | a]`, the critic step of eqs. 1 / 6, ∂(min_k Q_k)/∂a for
-//! the actor objectives, and the actor's backward pass and step. Each is the libtorch path's
-//! computation written out over [`crate::cpu`]'s kernels; `tests/algo_targets.rs` holds each
-//! algorithm's fused update to its autograd update.
+//! The hand-written CPU updates ([`LearnerConfig::fused_update`]): the same steps as the
+//! libtorch path of [`super::ddpg`], [`super::td3`] and [`super::sac`], with the backward
+//! passes written out over [`crate::cpu`]'s kernels. Read the paper's equations in those files;
+//! this module only makes them fast.
+//!
+//! | file | what |
+//! |---|---|
+//! | `mod.rs` (here) | the shared pieces: critic stacks on `[s | a]`, the critic step of eqs. 1 / 6, ∂(min_k Q_k)/∂a, the actor's backward pass and step |
+//! | [`ddpg`], [`td3`], [`sac`] | each algorithm's update, step for step beside its libtorch path |
+//!
+//! [`super::Agent::update`] is the one place that chooses between the two paths. Host memory
+//! is reached only through its owners' safe accessors ([`crate::nets::ParamSet::host`],
+//! [`crate::nets::ParamSet::host_mut`], [`crate::batch::Minibatch::host`]), so the borrow
+//! checker keeps each network's writes away from its live slices. `tests/algo_targets.rs`
+//! holds each algorithm's fused update to its libtorch update.
 //!
 //! [`LearnerConfig::fused_update`]: crate::config::LearnerConfig::fused_update
 
+mod ddpg;
+mod sac;
+mod td3;
+
+pub(super) use sac::Head;
+
 use super::{CriticStep, Trained, metric};
 use crate::LearnerError;
-use crate::batch::Minibatch;
-use crate::cpu::{Acts, Body, Scratch, clip_grad_norm, host_slice, host_slice_mut};
+use crate::batch::HostBatch as Batch;
+use crate::cpu::{Acts, Body, Scratch, clip_grad_norm};
 use crate::lanes::Lanes;
+use crate::nets::ParamSet;
 
-/// A minibatch's columns as host slices.
-pub(super) struct Batch<'a> {
-    pub obs: &'a [f32],
-    pub action: &'a [f32],
-    pub reward: &'a [f32],
-    pub next_obs: &'a [f32],
-    pub terminal: &'a [f32],
-    pub weights: &'a [f32],
-    pub rows: usize,
-}
-
-/// `None` when a column is not a contiguous host f32 tensor (then the autograd path runs).
-pub(super) fn batch(b: &Minibatch) -> Option<Batch<'_>> {
-    // SAFETY: the minibatch's tensors are read-only for the whole update.
-    Some(Batch {
-        obs: unsafe { host_slice(&b.obs) }?,
-        action: unsafe { host_slice(&b.action) }?,
-        reward: unsafe { host_slice(&b.reward) }?,
-        next_obs: unsafe { host_slice(&b.next_obs) }?,
-        terminal: unsafe { host_slice(&b.terminal) }?,
-        weights: unsafe { host_slice(&b.weights) }?,
-        rows: b.rows(),
-    })
-}
-
-/// [`crate::nets::ParamSet::soft_update_from`] on the host buffers ([`crate::cpu::soft_update`]):
-/// one loop, no libtorch call.
-pub(super) fn soft_update(target: &mut crate::nets::ParamSet, source: &crate::nets::ParamSet, tau: f64, lanes: &Lanes) {
-    // SAFETY: two different networks' buffers; nothing else reads or writes either meanwhile.
-    let t = unsafe { host_slice_mut(target.flat()) }.expect("host parameters");
-    let s = unsafe { host_slice(source.flat()) }.expect("host parameters");
+/// [`ParamSet::soft_update_from`] on the host buffers ([`crate::cpu::soft_update`]): one loop,
+/// no libtorch call.
+pub(super) fn soft_update(target: &mut ParamSet, source: &ParamSet, tau: f64, lanes: &Lanes) {
+    let t = target.host_mut().expect("host parameters");
+    let s = source.host().expect("host parameters");
     crate::cpu::soft_update(t, s, tau, lanes);
 }
 
@@ -118,7 +109,7 @@ impl MinRows {
 }
 
 /// The `k` critics of a [`crate::nets::stacked_mlp_specs`] stack on `obs + act` inputs.
-pub(super) fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize) -> Vec<Body> {
+fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize) -> Vec<Body> {
     (0..k).map(|j| Body::stacked(j, k, obs + act, hidden, 1)).collect()
 }
 
@@ -177,8 +168,7 @@ impl Work {
         let rows = b.rows;
         let k = bodies.len();
         let Trained { net, opt, .. } = critic;
-        // SAFETY: `net`'s buffer is borrowed exclusively here; no other slice of it is alive.
-        let p = unsafe { host_slice_mut(net.flat()) }.expect("host parameters");
+        let p = net.host_mut().expect("host parameters");
         self.critics_forward(bodies, p, b.obs, b.action, act, rows);
         self.dq.resize_with(k, Vec::new);
         let (mut loss, mut q_sum) = (0.0f64, 0.0f64);
@@ -255,8 +245,7 @@ impl Work {
     /// Adam step. Returns the norm before clipping when clipping is on.
     pub fn actor_step(&mut self, body: &Body, actor: &mut Trained, obs: &[f32], clip: Option<f64>) -> Option<f64> {
         let Trained { net, opt, .. } = actor;
-        // SAFETY: `net`'s buffer is borrowed exclusively here; no other slice of it is alive.
-        let p = unsafe { host_slice_mut(net.flat()) }.expect("host parameters");
+        let p = net.host_mut().expect("host parameters");
         self.actor_grad.clear();
         self.actor_grad.resize(p.len(), 0.0);
         body.backward(p, obs, &self.actor, &self.dy, Some(&mut self.actor_grad), None, &mut self.scratch, &self.lanes);
@@ -290,7 +279,7 @@ impl Work {
         body: &Body,
         bodies: &[Body],
         actor: &mut Trained,
-        critic: &crate::nets::ParamSet,
+        critic: &ParamSet,
         b: &Batch<'_>,
         obs: usize,
         act: usize,
@@ -298,11 +287,11 @@ impl Work {
         update: u64,
     ) -> Result<(f64, Option<f64>), LearnerError> {
         let rows = b.rows;
-        // SAFETY: the actor's and the critic's buffers are only read until `actor_step`,
-        // which writes the actor's alone after these slices are dead.
-        let actor_p = unsafe { host_slice(actor.net.flat()) }.expect("host parameters");
+        // The actor's and the critic's buffers are only read until `actor_step` writes the
+        // actor's (the borrow checker ends these slices first).
+        let actor_p = actor.net.host().expect("host parameters");
         self.tanh_action(body, actor_p, b.obs, rows);
-        let cp = unsafe { host_slice(critic.flat()) }.expect("host parameters");
+        let cp = critic.host().expect("host parameters");
         self.critics_forward_at_action(bodies, cp, b.obs, act, rows);
         let loss = -self.min_q_action_grad(bodies, cp, obs, act, rows);
         if !loss.is_finite() {
