@@ -265,11 +265,12 @@ pub fn shm_ingest_rows_per_s(writers: usize, obs_dim: usize, duration: Duration)
 /// snapshots ran back to back), in milliseconds.
 pub fn snapshot_stall_ms(rows: usize) -> Result<(f64, f64), ReplayError> {
     use crate::config::PersistenceConfig;
+    use crate::persist::DurableTable;
     let dir = std::env::temp_dir().join(format!("mapless-bench-snapshot-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let cfg = TableConfig { capacity: rows, max_batch_rows: 10_000, ..bench_table(1, 17)?.config().clone() };
     let persist = PersistenceConfig { dir: Some(dir.clone()), snapshot_interval_s: 0.0, ..PersistenceConfig::default() };
-    let (table, _) = Table::open(cfg, persist, 1)?;
+    let (table, _) = DurableTable::open(cfg, persist, 1)?;
     let table = Arc::new(table);
     fill(&table, rows, 17, 10_000)?;
     let stop = Arc::new(AtomicBool::new(false));

@@ -8,14 +8,18 @@
 //! ```
 //!
 //! Anchored on DeepMind Reverb (tables, selectors, a rate limiter), with exactly-once inserts
-//! on (actor id, sequence). This crate never links libtorch.
+//! on (actor id, sequence). The table (`table.rs`) lives in memory; [`DurableTable`]
+//! (`persist/`) makes it survive restarts with a write-ahead log and snapshots, and depends on
+//! the table, never the reverse. This crate never links libtorch.
 
 pub mod actors;
 pub mod bench;
+mod clock;
 pub mod config;
 pub mod error;
 pub mod grpc;
 pub mod metrics;
+pub mod persist;
 pub mod rate_limiter;
 pub mod server;
 pub mod shm;
@@ -27,5 +31,6 @@ mod wal;
 pub use actors::ActorStats;
 pub use config::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, SamplerConfig, TableConfig};
 pub use error::ReplayError;
-pub use table::{RecoveryReport, SnapshotInfo, Table};
+pub use persist::{DurableTable, RecoveryReport, SnapshotInfo};
+pub use table::{CheckpointMark, Journal, Table, TableCheckpoint};
 pub use wal::StorageFault;

@@ -31,9 +31,10 @@ use rand_pcg::Pcg64Mcg;
 use serde::{Deserialize, Serialize};
 
 use crate::actors::ActorStats;
+use crate::clock::unix_ms;
 use crate::config::SamplerConfig;
 use crate::error::ReplayError;
-use crate::wal::{parse_numbered_name, storage, sync_dir, unix_ms};
+use crate::wal::{parse_numbered_name, storage, sync_dir};
 
 const MAGIC: &[u8; 8] = b"MPLSSNAP";
 const FORMAT_VERSION: u32 = 1;

@@ -1,5 +1,7 @@
 //! A table of transitions: columnar ring storage with FIFO eviction, a sum-tree sampler
-//! (uniform or proportional prioritised), the rate limiter, and exactly-once inserts.
+//! (uniform or proportional prioritised), the rate limiter, and exactly-once inserts. Memory
+//! only: what makes it durable (`persist/`) depends on it through three seams, never the
+//! reverse (as Reverb's `Table::Checkpoint` and its checkpointer).
 //!
 //! ```text
 //!   key k (u64, assigned in insert order) lives in slot k mod capacity while
@@ -14,44 +16,35 @@
 //! condition variable that every insert, sample and close notifies. Memory is the raw payload
 //! plus 16 bytes a slot for the sum tree and ~30 bytes of per-row metadata.
 //!
-//! Persistence ([`Table::open`]): inserts and priority updates append a record to the
-//! write-ahead log (`wal.rs`) under the lock, before they change anything, so log order is
-//! apply order and an acknowledged change is in the log. A background thread copies the
-//! metadata under the lock (O(capacity) memcpy, a few ms at 1M rows) and writes the snapshot
-//! (`snapshot.rs`) without it; another fsyncs the log on `FsyncPolicy::IntervalMs`.
+//! The seams to persistence:
 //!
 //! ```text
-//!   open:  newest usable snapshot ──► replay log: LSN ≤ snapshot: row data only
-//!                                                 LSN > snapshot: inserts, de-dup marks,
-//!                                                                 priorities, counters
-//!          stop at the first torn/corrupt record, move what follows to wal/corrupt/
+//!   Journal (set_journal)   every accepted insert and priority update is handed to it under
+//!                           the lock, before it changes anything: journal order is apply
+//!                           order, and an acknowledged change is in the journal
+//!   checkpoint[_into]       a value holding everything but the rows (priorities, live flags,
+//!                           counters, de-dup marks, the sampler's random state) and the
+//!                           journal position it is consistent with; an O(capacity) copy under
+//!                           the lock into buffers the caller keeps
+//!   restore (crate)         a checkpoint back, then the journaled rows and changes after it
 //! ```
 
-use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use mapless_proto::v1::{ActorInfo, InsertAck, ProtocolVersion, RateLimiterInfo, SampledBatch, ServerInfoResponse, TransitionBatch};
 use mapless_proto::{FloatColumn, FloatEncoding, extend_f32le};
-use prost::Message;
 use prost::bytes::Bytes;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64Mcg;
 
 use crate::actors::ActorStats;
-use crate::config::{FsyncPolicy, PersistenceConfig, SamplerConfig, TableConfig};
+use crate::clock::unix_ms;
+use crate::config::{SamplerConfig, TableConfig};
 use crate::error::ReplayError;
 use crate::rate_limiter::RateLimiter;
-use crate::snapshot::{SnapshotData, SnapshotMeta, SnapshotStore};
 use crate::sum_tree::SumTree;
-use crate::wal::{self, StorageFault, Wal, WalSync, unix_ms};
-
-/// Snapshots kept on disk. The log is kept back to the oldest, so a damaged newest snapshot
-/// falls back to the previous one without losing anything.
-const SNAPSHOTS_KEPT: usize = 2;
 
 /// Insert and sample rates over the last few seconds.
 #[derive(Debug)]
@@ -107,8 +100,8 @@ struct State {
     insert_rate: RateMeter,
     sample_rate: RateMeter,
     closed: bool,
-    /// The write-ahead log, when the table persists itself.
-    wal: Option<Wal>,
+    /// Where every accepted change goes first, when the table is made durable.
+    journal: Option<Arc<dyn Journal>>,
 }
 
 impl State {
@@ -210,10 +203,71 @@ impl State {
 /// One replay table. Share it with `Arc`; every method takes `&self`.
 pub struct Table {
     cfg: TableConfig,
-    state: Arc<Mutex<State>>,
+    state: Mutex<State>,
     changed: Condvar,
     started_unix_ms: u64,
-    persist: Option<Persist>,
+    /// A journal is set: inserts encode their batch (outside the lock) for it.
+    journaled: bool,
+}
+
+/// Where a table hands every accepted change before applying it: a write-ahead log, for
+/// instance (`persist/`). The table calls it under its lock, so the journal sees changes in
+/// exactly the order they are applied, and nothing else reaches the table in between.
+///
+/// A call that returns `Err` changes nothing in the table and its error goes back to the
+/// caller of [`Table::insert`] or [`Table::update_priorities`] (which therefore never
+/// acknowledges a change the journal did not take). A journal must never take the table's lock
+/// (it is held) and should be quick: every insert and sample waits while it runs.
+pub trait Journal: Send + Sync {
+    /// Rows `first_key..first_key + rows` of the batch whose protobuf encoding is
+    /// `batch_bytes`, stored at wall-clock `unix_ms`.
+    fn insert(&self, first_key: u64, rows: u64, unix_ms: u64, batch_bytes: &[u8]) -> Result<(), ReplayError>;
+    /// New raw priorities (before α and ε) of keys stored at the time.
+    fn priorities(&self, pairs: &[(u64, f64)]) -> Result<(), ReplayError>;
+    /// How far the journal got (e.g. the last log sequence number); a checkpoint records it,
+    /// read under the same lock as everything it copies.
+    fn position(&self) -> u64;
+}
+
+/// Everything of a table but its rows, consistent with one journal position: what a
+/// checkpoint (a snapshot on disk) holds. The rows themselves are the journal's; restoring
+/// means this value plus the rows and changes the journal holds (see `persist/recovery.rs`).
+#[derive(Clone, Debug, Default)]
+pub struct TableCheckpoint {
+    /// [`Journal::position`] when the copy was taken (0 without a journal): every journaled
+    /// change up to it is included, none after it.
+    pub journal_position: u64,
+    /// Key the next inserted row gets (= rows ever inserted).
+    pub next_key: u64,
+    /// Rows stored (live).
+    pub size: u64,
+    /// Largest priority weight seen (what new rows get).
+    pub max_weight: f64,
+    /// Rate-limiter counters, in rows.
+    pub inserts: u64,
+    pub samples: u64,
+    /// Per-actor statistics, de-duplication marks among them.
+    pub actors: BTreeMap<String, ActorStats>,
+    /// The sampler's random-number generator (`None` on restore: keep the seeded stream).
+    pub sampler_rng: Option<Pcg64Mcg>,
+    /// Per slot: sum-tree weight, whether the slot is live, how often it was sampled.
+    pub weights: Vec<f64>,
+    pub live: Vec<bool>,
+    pub times_sampled: Vec<u32>,
+}
+
+/// What tells two checkpoints of one table apart: the journal position and the samples drawn
+/// (sampling is not journaled but moves the counters, `times_sampled` and the sampler's state).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CheckpointMark {
+    pub journal_position: u64,
+    pub samples: u64,
+}
+
+impl TableCheckpoint {
+    pub fn mark(&self) -> CheckpointMark {
+        CheckpointMark { journal_position: self.journal_position, samples: self.samples }
+    }
 }
 
 /// Asks the kernel to back a large, not yet touched column with transparent huge pages
@@ -302,253 +356,69 @@ impl Table {
             insert_rate: RateMeter::new(),
             sample_rate: RateMeter::new(),
             closed: false,
-            wal: None,
+            journal: None,
         };
         let mut state = state;
         for column in [&mut state.obs, &mut state.next_obs, &mut state.action] {
             advise_huge_pages(column);
         }
-        Ok(Table { cfg, state: Arc::new(Mutex::new(state)), changed: Condvar::new(), started_unix_ms: unix_ms(), persist: None })
+        Ok(Table { cfg, state: Mutex::new(state), changed: Condvar::new(), started_unix_ms: unix_ms(), journaled: false })
     }
 
-    /// A table that persists itself in `persistence.dir` (memory only when that is `None`):
-    /// restores what the directory holds, then logs every insert and priority update and
-    /// snapshots in the background. Every batch acknowledged before a crash comes back exactly
-    /// once; a torn or corrupt log is cut at the first bad record, which the report names
-    /// (everything before it is restored). Fails when another table holds the directory, or
-    /// when the directory was written by a table of another capacity or dims.
-    pub fn open(cfg: TableConfig, persistence: PersistenceConfig, seed: u64) -> Result<(Table, RecoveryReport), ReplayError> {
-        persistence.validate()?;
-        let mut table = Table::new(cfg, seed)?;
-        let Some(dir) = persistence.dir.clone() else {
-            return Ok((table, RecoveryReport::default()));
-        };
-        let wal_dir = dir.join("wal");
-        std::fs::create_dir_all(&wal_dir).map_err(|e| ReplayError::Storage { path: wal_dir.clone(), problem: format!("create: {e}") })?;
-        let lock_file = crate::snapshot::lock_dir(&dir)?;
-        let store = SnapshotStore::open(dir.join("snapshots"), SNAPSHOTS_KEPT)?;
-        let (wal, report) = table.recover(&store, &wal_dir, &persistence)?;
-        let sync = wal.sync_handle();
-        table.lock().wal = Some(wal);
-        let shared = Arc::new(PersistShared {
-            name: table.cfg.name.clone(),
-            capacity: table.cfg.capacity,
-            obs_dim: table.cfg.obs_dim,
-            act_dim: table.cfg.act_dim,
-            sampler: table.cfg.sampler.clone(),
-            state: Arc::clone(&table.state),
-            store,
-            sync,
-            wal_dir,
-            scratch: Mutex::new(SnapshotScratch::default()),
-            stop: Mutex::new(false),
-            stop_cv: Condvar::new(),
-        });
-        let threads = match PersistShared::spawn(&shared, &persistence) {
-            Ok(t) => t,
-            Err((e, started)) => {
-                *lock_plain(&shared.stop) = true;
-                shared.stop_cv.notify_all();
-                started.into_iter().for_each(|h| drop(h.join()));
-                return Err(e);
-            }
-        };
-        table.persist = Some(Persist { shared, threads: Mutex::new(threads), shut: AtomicBool::new(false), _lock_file: lock_file });
-        Ok((table, report))
+    /// Hands every insert and priority update from now on to `journal` first (see
+    /// [`Journal`]). Set once, before the table is shared (a durable table sets it after
+    /// recovery, so replayed changes are not journaled again).
+    pub fn set_journal(&mut self, journal: Arc<dyn Journal>) {
+        self.lock().journal = Some(journal);
+        self.journaled = true;
     }
 
-    /// Rebuilds the (empty) state from the newest usable snapshot and the log; returns the log
-    /// reopened for appending after the last valid record.
-    fn recover(&self, store: &SnapshotStore, wal_dir: &Path, p: &PersistenceConfig) -> Result<(Wal, RecoveryReport), ReplayError> {
-        let t0 = Instant::now();
-        let cfg = &self.cfg;
-        let (cap, d, a) = (cfg.capacity, cfg.obs_dim, cfg.act_dim);
-        let mut report = RecoveryReport::default();
-        let mut scan = wal::scan(wal_dir)?;
-        let (log_start, log_end) = (scan.start_lsn(), scan.end_lsn());
-
-        // The newest snapshot that checks out and that the log can continue: not past the
-        // log's end (records it covers were lost) and not before a gap in the log.
-        let mut base: Option<(PathBuf, SnapshotData)> = None;
-        for (lsn, path) in store.list()?.into_iter().rev() {
-            let unusable = |reason: String| StorageFault { path: path.clone(), offset: 0, reason };
-            if let Some(end) = log_end.filter(|&end| lsn > end) {
-                report.skipped_snapshots.push(unusable(format!("covers the log up to LSN {lsn} but its valid records end at {end}")));
-                store.set_aside(&path, "ahead")?;
-                continue;
-            }
-            if let Some(start) = log_start.filter(|&start| start > lsn + 1) {
-                report.skipped_snapshots.push(unusable(format!("the log now starts at LSN {start}, records {} onwards are gone", lsn + 1)));
-                continue;
-            }
-            match SnapshotStore::load(&path) {
-                Err(reason) => {
-                    report.skipped_snapshots.push(unusable(format!("corrupt: {reason}")));
-                    store.set_aside(&path, "corrupt")?;
-                }
-                Ok(snap) => {
-                    let m = &snap.meta;
-                    if (m.capacity, m.obs_dim, m.act_dim) != (cap as u64, d as u64, a as u64) {
-                        return Err(ReplayError::InvalidConfig(format!(
-                            "{} was written by a table of capacity {}, obs_dim {}, act_dim {}; this one has {cap}, {d}, {a}. Use the same shape or move the directory away",
-                            path.display(),
-                            m.capacity,
-                            m.obs_dim,
-                            m.act_dim
-                        )));
-                    }
-                    base = Some((path, snap));
-                    break;
-                }
-            }
-        }
-        for f in &report.skipped_snapshots {
-            tracing::warn!(table = %cfg.name, file = %f.path.display(), reason = %f.reason, "snapshot skipped");
-        }
-
-        let mut st = self.lock();
-        let s = &mut *st;
-        let mut snap_lsn = 0;
-        let mut samples = 0;
-        let snapshot_path = base.as_ref().map(|(p, _)| p.clone());
-        if let Some((path, snap)) = base {
-            let m = snap.meta;
-            let same_sampler = m.sampler == cfg.sampler;
-            if !same_sampler {
-                report.warnings.push(format!("sampler changed since {} was written: stored priorities reset to 1", path.display()));
-            }
-            s.max_weight = if same_sampler { m.max_weight } else { 1.0 };
-            for slot in 0..cap {
-                s.live[slot] = snap.live[slot];
-                s.times_sampled[slot] = snap.times_sampled[slot];
-                if snap.live[slot] {
-                    s.tree.set(slot, if same_sampler { snap.weights[slot] } else { 1.0 });
-                }
-            }
-            s.size = s.live.iter().filter(|&&l| l).count() as u64;
-            s.next_key = m.next_key;
-            s.actors = m.actors.into_iter().collect();
-            // The sampler continues its random stream where the snapshot left it, so the
-            // minibatches drawn after a restart are those the table would have drawn anyway
-            // (older snapshots lack it: the stream restarts from `seed`).
-            if let Some(rng) = m.sampler_rng {
-                s.rng = rng;
-            }
-            samples = m.samples;
-            snap_lsn = m.lsn;
-            report.snapshot = Some(path);
-            report.snapshot_lsn = m.lsn;
-        } else if let Some(start) = log_start.filter(|&start| start > 1) {
-            report.warnings.push(format!("no usable snapshot and the log starts at LSN {start}: de-duplication marks and counters from before it are lost"));
-        }
-
-        let mut filled = vec![false; cap];
-        let mut expected_key: Option<u64> = None;
-        let mut after_snapshot = 0u64;
-        let mut inserts_applied = 0u64;
-        let mismatch = |path: Option<&PathBuf>, what: String| ReplayError::Storage {
-            path: path.cloned().unwrap_or_else(|| wal_dir.to_path_buf()),
-            problem: format!("snapshot and log disagree: {what}; move the snapshot aside to recover from the log alone"),
-        };
-        let replayed = wal::replay(&mut scan, |rec| match rec.kind {
-            wal::KIND_INSERT => {
-                let (first_key, unix_ms, bytes) = wal::split_insert_payload(rec.payload).map_err(Ok)?;
-                let batch = TransitionBatch::decode(bytes).map_err(|e| Ok(format!("corrupt: logged batch does not decode: {e}")))?;
-                if (batch.obs_dim as usize, batch.act_dim as usize) != (d, a) {
-                    return Err(Err(ReplayError::InvalidConfig(format!(
-                        "the log in {} holds rows of obs_dim {}, act_dim {}; this table has {d}, {a}. Use the same dims or move the directory away",
-                        wal_dir.display(),
-                        batch.obs_dim,
-                        batch.act_dim
-                    ))));
-                }
-                let rows = batch.validate(d, a, usize::MAX).map_err(|e| Ok(format!("corrupt: logged batch is invalid: {e}")))?;
-                let key_end = first_key.checked_add(rows as u64).ok_or_else(|| Ok(format!("corrupt: first key {first_key} overflows")))?;
-                if let Some(k) = expected_key.filter(|&k| k != first_key) {
-                    return Err(Ok(format!("corrupt: rows start at key {first_key}, {k} expected")));
-                }
-                expected_key = Some(key_end);
-                if rec.lsn <= snap_lsn {
-                    // The snapshot already counts these rows; only their data lives here.
-                    if key_end > s.next_key {
-                        return Err(Err(mismatch(snapshot_path.as_ref(), format!("LSN {} holds keys up to {key_end}, the snapshot's next key is {}", rec.lsn, s.next_key))));
-                    }
-                    s.place_rows(first_key, &batch, rows, cfg, |_, slot, n| filled[slot..slot + n].fill(true));
-                } else {
-                    if s.next_key != first_key {
-                        if snapshot_path.is_none() && inserts_applied == 0 {
-                            s.next_key = first_key; // the log's history before its start is gone (warned above)
-                        } else {
-                            return Err(Err(mismatch(snapshot_path.as_ref(), format!("LSN {} inserts at key {first_key}, the table is at {}", rec.lsn, s.next_key))));
-                        }
-                    }
-                    for r in 0..rows {
-                        filled[((first_key + r as u64) % cap as u64) as usize] = true;
-                    }
-                    s.store_rows(&batch, rows, cfg);
-                    s.note_insert(&batch, rows, unix_ms);
-                    after_snapshot += 1;
-                    inserts_applied += 1;
-                }
-                Ok(Some(key_end))
-            }
-            wal::KIND_PRIORITIES => {
-                let pairs = wal::parse_priorities_payload(rec.payload).map_err(Ok)?;
-                if rec.lsn > snap_lsn {
-                    if let SamplerConfig::Prioritized { alpha, epsilon, .. } = cfg.sampler {
-                        s.apply_priorities(&pairs, alpha, epsilon, cap as u64);
-                    }
-                    after_snapshot += 1;
-                }
-                Ok(None)
-            }
-            kind => Err(Ok(format!("corrupt: unknown record kind {kind}"))),
-        })?;
-
-        // A live row whose data the log no longer holds cannot be served: drop it, loudly.
-        let window = s.next_key.saturating_sub(cap as u64);
-        let mut lost = 0u64;
-        for (slot, &has_data) in filled.iter().enumerate() {
-            if s.live[slot] && !(has_data && s.key[slot] >= window && s.key[slot] < s.next_key) {
-                s.live[slot] = false;
-                s.tree.set(slot, 0.0);
-                lost += 1;
-            }
-        }
-        s.size = s.live.iter().filter(|&&l| l).count() as u64;
-        s.limiter.restore(s.next_key, samples);
-
-        let end = scan.end_lsn().unwrap_or(0).max(snap_lsn);
-        let wal = Wal::reopen(&scan, p.fsync, p.segment_bytes, end + 1, s.next_key)?;
-        report.segments = scan.segments.iter().filter(|g| g.valid_len > 0).count();
-        report.records_replayed = replayed;
-        report.records_after_snapshot = after_snapshot;
-        report.rows = s.size;
-        report.next_key = s.next_key;
-        report.last_lsn = wal.last_lsn();
-        report.fault = scan.fault.clone();
-        report.rows_lost = lost;
-        if lost > 0 {
-            report.warnings.push(format!("{lost} rows the snapshot lists as stored are missing from the log and were dropped"));
-        }
-        if let Some(f) = &report.fault {
-            tracing::warn!(table = %cfg.name, file = %f.path.display(), offset = f.offset, reason = %f.reason, records_restored = replayed, "log cut at a torn or corrupt record; everything before it restored, the rest moved to wal/corrupt/");
-        }
-        for w in &report.warnings {
-            tracing::warn!(table = %cfg.name, "{w}");
-        }
-        report.elapsed = t0.elapsed();
-        tracing::info!(table = %cfg.name, rows = report.rows, records = replayed, after_snapshot, snapshot_lsn = snap_lsn, ms = report.elapsed.as_millis() as u64, "table restored");
-        Ok((wal, report))
+    /// A checkpoint of the table as it is now (allocates; see [`Table::checkpoint_into`]).
+    pub fn checkpoint(&self) -> TableCheckpoint {
+        let mut out = TableCheckpoint::default();
+        self.checkpoint_into(&mut out, None);
+        out
     }
 
-    /// Writes a snapshot now (waiting for one in progress); `None` for a memory-only table or
-    /// when nothing changed since the last one. Inserts and samples wait only for the copy.
-    pub fn snapshot(&self) -> Result<Option<SnapshotInfo>, ReplayError> {
-        match &self.persist {
-            Some(p) => p.shared.snapshot(),
-            None => Ok(None),
+    /// Copies a checkpoint into `out`, reusing its buffers, unless the table's
+    /// [`CheckpointMark`] is still `unless_at` (then `out` is left as it was and the result is
+    /// `None`). Returns how long the table's lock was held for the copy: the longest any insert
+    /// or sample waited for it. The per-slot buffers are sized before the lock is taken, so a
+    /// caller that keeps `out` between checkpoints copies into memory already paged in (at 1M
+    /// slots the first touch of the 13 MB costs more than the copy itself).
+    pub fn checkpoint_into(&self, out: &mut TableCheckpoint, unless_at: Option<CheckpointMark>) -> Option<Duration> {
+        let cap = self.cfg.capacity;
+        out.weights.resize(cap, 0.0);
+        out.live.resize(cap, false);
+        out.times_sampled.resize(cap, 0);
+        let st = self.lock();
+        let copy_start = Instant::now();
+        let journal_position = st.journal.as_ref().map_or(0, |j| j.position());
+        let (inserts, samples) = st.limiter.counts();
+        if unless_at == Some(CheckpointMark { journal_position, samples }) {
+            return None;
         }
+        for (slot, w) in out.weights.iter_mut().enumerate() {
+            *w = st.tree.get(slot);
+        }
+        out.live.copy_from_slice(&st.live);
+        out.times_sampled.copy_from_slice(&st.times_sampled);
+        out.journal_position = journal_position;
+        out.next_key = st.next_key;
+        out.size = st.size;
+        out.max_weight = st.max_weight;
+        (out.inserts, out.samples) = (inserts, samples);
+        out.actors.clear();
+        out.actors.extend(st.actors.iter().map(|(k, v)| (k.clone(), v.clone())));
+        out.sampler_rng = Some(st.rng.clone());
+        drop(st);
+        Some(copy_start.elapsed())
+    }
+
+    /// Restores this (new, empty, not yet shared) table: the lock is held until the returned
+    /// [`Restore`] is finished.
+    pub(crate) fn restore(&self) -> Restore<'_> {
+        Restore { cfg: &self.cfg, st: self.lock(), filled: vec![false; self.cfg.capacity], samples: 0 }
     }
 
     pub fn config(&self) -> &TableConfig {
@@ -566,13 +436,18 @@ impl Table {
         self.lock().size
     }
 
+    /// Rows ever inserted: the key the next row gets.
+    pub fn next_key(&self) -> u64 {
+        self.lock().next_key
+    }
+
     /// Validates, de-duplicates on (actor_id, sequence), waits for the rate limiter until
     /// `deadline` (None: wait indefinitely), and stores the batch. A duplicate (sequence at or
     /// below the actor's last stored one) is acknowledged with `duplicate = true` and changes
-    /// nothing. A rejected batch changes nothing and is counted against its actor. On a
-    /// persistent table the batch is in the log (written to the OS; fsynced too under
-    /// `FsyncPolicy::Always`) before it is stored and acknowledged; if the log cannot be
-    /// written, nothing is stored and the error is `Storage`.
+    /// nothing. A rejected batch changes nothing and is counted against its actor. With a
+    /// [`Journal`] the batch is in the journal before it is stored and acknowledged (for the
+    /// write-ahead log: written to the OS, fsynced too under `FsyncPolicy::Always`); if the
+    /// journal refuses it, nothing is stored and its error (`Storage`) is returned.
     ///
     /// The batch's float columns may travel in either encoding (packed or `*_f32le` bytes);
     /// each column is copied into the table with one copy.
@@ -581,7 +456,7 @@ impl Table {
     }
 
     /// [`Table::insert`] for a batch whose protobuf encoding the caller already holds
-    /// (`encoded`, exactly the bytes `batch` was decoded from): a persistent table logs those
+    /// (`encoded`, exactly the bytes `batch` was decoded from): a journaled table journals those
     /// bytes instead of encoding the batch again.
     pub(crate) fn insert_encoded(&self, batch: &TransitionBatch, encoded: Option<&[u8]>, deadline: Option<Instant>) -> Result<InsertAck, ReplayError> {
         let rows = match batch.validate(self.cfg.obs_dim, self.cfg.act_dim, self.cfg.max_batch_rows) {
@@ -594,10 +469,10 @@ impl Table {
         // Encoded outside the lock (float columns as bytes: a memcpy each); the record is
         // written under it, before anything changes.
         let owned;
-        let encoded = match (self.persist.as_ref(), encoded) {
-            (None, _) => None,
-            (Some(_), Some(bytes)) => Some(bytes),
-            (Some(_), None) => {
+        let encoded = match (self.journaled, encoded) {
+            (false, _) => None,
+            (true, Some(bytes)) => Some(bytes),
+            (true, None) => {
                 let mut buf = Vec::with_capacity(batch.encoded_len_f32le());
                 batch.encode_f32le(&mut buf);
                 owned = buf;
@@ -615,8 +490,8 @@ impl Table {
         }
         let now_ms = unix_ms();
         let s = &mut *st;
-        if let (Some(wal), Some(bytes)) = (s.wal.as_mut(), encoded) {
-            wal.append_insert(s.next_key, rows as u64, now_ms, bytes)?;
+        if let (Some(journal), Some(bytes)) = (s.journal.as_ref(), encoded) {
+            journal.insert(s.next_key, rows as u64, now_ms, bytes)?;
         }
         s.store_rows(batch, rows, &self.cfg);
         s.insert_rate.add(Instant::now(), rows as u64);
@@ -767,8 +642,8 @@ impl Table {
     }
 
     /// Sets new priorities (e.g. |TD error|) for keys still stored; returns (updated,
-    /// unknown) counts. Keys evicted or removed since they were sampled are skipped. On a
-    /// persistent table the updates to stored keys are logged first, as for `insert`.
+    /// unknown) counts. Keys evicted or removed since they were sampled are skipped. With a
+    /// [`Journal`] the updates to stored keys are journaled first, as for `insert`.
     pub fn update_priorities(&self, keys: &[u64], priorities: &[f64]) -> Result<(u32, u32), ReplayError> {
         if keys.len() != priorities.len() {
             return Err(ReplayError::BadRequest(format!("{} keys but {} priorities", keys.len(), priorities.len())));
@@ -784,8 +659,8 @@ impl Table {
         let mut st = self.lock();
         let s = &mut *st;
         let known: Vec<(u64, f64)> = keys.iter().zip(priorities).filter(|(k, _)| s.holds(**k, cap)).map(|(&k, &p)| (k, p)).collect();
-        if let Some(wal) = s.wal.as_mut().filter(|_| !known.is_empty()) {
-            wal.append_priorities(&known)?;
+        if let Some(journal) = s.journal.as_ref().filter(|_| !known.is_empty()) {
+            journal.priorities(&known)?;
         }
         let updated = s.apply_priorities(&known, alpha, epsilon, cap);
         Ok((updated as u32, (keys.len() - updated) as u32))
@@ -823,16 +698,11 @@ impl Table {
         }
     }
 
-    /// Wakes every blocked caller with `Closed`; later calls fail the same way. A persistent
-    /// table then stops its background threads, writes a final snapshot and fsyncs its log
-    /// (problems are logged; the log alone still restores everything). Dropping a table does
-    /// the same.
+    /// Wakes every blocked caller with `Closed`; later calls fail the same way. (A
+    /// `DurableTable`'s close does this, then writes its final snapshot.)
     pub fn close(&self) {
         self.lock().closed = true;
         self.changed.notify_all();
-        if let Some(p) = &self.persist {
-            p.shutdown(&self.cfg.name);
-        }
     }
 
     /// Per-actor statistics (clone).
@@ -913,262 +783,176 @@ impl Table {
     }
 }
 
-impl Drop for Table {
-    fn drop(&mut self) {
-        if self.persist.is_some() {
-            self.close();
-        }
-    }
+/// A restore in progress: a new table's lock, held from [`Table::restore`] until
+/// [`Restore::finish`], while a checkpoint and then the journal are fed in (recovery in
+/// `persist/recovery.rs` reads them from disk). Nothing is journaled again. The batches handed
+/// in must have passed `validate` for this table's dims, `rows` being what it returned.
+pub(crate) struct Restore<'a> {
+    cfg: &'a TableConfig,
+    st: MutexGuard<'a, State>,
+    /// Slots whose row data came in (a live slot without it cannot be served).
+    filled: Vec<bool>,
+    /// The checkpoint's sample count (the rate limiter's, restored at the end).
+    samples: u64,
 }
 
-/// What [`Table::open`] found on disk and did about it.
-#[derive(Clone, Debug, Default)]
-pub struct RecoveryReport {
-    /// The snapshot recovery started from; `None` means the log alone (or an empty directory).
-    pub snapshot: Option<PathBuf>,
-    /// The last log record that snapshot covers.
-    pub snapshot_lsn: u64,
-    /// Snapshots passed over, newest first, and why. Corrupt ones, and ones covering records the
-    /// log no longer holds, are renamed (`*.corrupt.<ms>`, `*.ahead.<ms>`) and never read again.
-    pub skipped_snapshots: Vec<StorageFault>,
-    /// Log segments read.
-    pub segments: usize,
-    /// Valid log records read (before and after the snapshot).
-    pub records_replayed: u64,
-    /// Of those, records newer than the snapshot, re-applied in full.
-    pub records_after_snapshot: u64,
-    /// Rows stored after recovery.
+/// What a finished [`Restore`] left.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Restored {
+    /// Rows stored.
     pub rows: u64,
     /// Rows ever inserted (the next key).
     pub next_key: u64,
-    /// LSN of the last valid record; new records continue from it.
-    pub last_lsn: u64,
-    /// The first torn or corrupt spot in the log: the file, the byte offset and why. Nothing
-    /// from it on was restored; those bytes (and any later segments) are in `wal/corrupt/`.
-    pub fault: Option<StorageFault>,
-    /// Rows a snapshot listed as stored whose data the log no longer held (dropped).
+    /// Rows the checkpoint listed as stored whose data never came (dropped).
     pub rows_lost: u64,
-    /// Anything else a person should know (e.g. the sampler changed).
-    pub warnings: Vec<String>,
-    pub elapsed: Duration,
 }
 
-/// One snapshot written by [`Table::snapshot`] or the background thread.
-#[derive(Clone, Debug)]
-pub struct SnapshotInfo {
-    pub path: PathBuf,
-    /// The last log record it covers.
-    pub lsn: u64,
-    pub bytes: u64,
-    pub rows: u64,
-    /// How long the table's lock was held to copy the metadata: the longest any insert or
-    /// sample waited for the snapshot.
-    pub copy: Duration,
-    /// Log fsync, file write, fsync and rename (no lock held).
-    pub write: Duration,
-    /// Log segments deleted because no recovery can need them any more.
-    pub segments_deleted: usize,
-}
-
-/// A persistent table's background machinery.
-struct Persist {
-    shared: Arc<PersistShared>,
-    threads: Mutex<Vec<JoinHandle<()>>>,
-    shut: AtomicBool,
-    /// Held (flock) while the table is open: two writers would interleave their logs.
-    _lock_file: std::fs::File,
-}
-
-/// What the snapshot and flush threads share with the table.
-struct PersistShared {
-    name: String,
-    capacity: usize,
-    obs_dim: usize,
-    act_dim: usize,
-    sampler: SamplerConfig,
-    state: Arc<Mutex<State>>,
-    store: SnapshotStore,
-    sync: Arc<WalSync>,
-    wal_dir: PathBuf,
-    /// Also serialises snapshot writers.
-    scratch: Mutex<SnapshotScratch>,
-    stop: Mutex<bool>,
-    stop_cv: Condvar,
-}
-
-/// The last snapshot's (LSN, samples) and its per-slot buffers, kept so that the copy under
-/// the table lock writes into memory already paged in (at 1M slots the first touch of the
-/// 13 MB costs more than the copy itself).
-#[derive(Default)]
-struct SnapshotScratch {
-    mark: Option<(u64, u64)>,
-    weights: Vec<f64>,
-    live: Vec<bool>,
-    times_sampled: Vec<u32>,
-}
-
-fn lock_plain<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-impl PersistShared {
-    /// Starts the flush and snapshot threads; on failure, the error and the threads started.
-    #[allow(clippy::type_complexity)]
-    fn spawn(shared: &Arc<PersistShared>, p: &PersistenceConfig) -> Result<Vec<JoinHandle<()>>, (ReplayError, Vec<JoinHandle<()>>)> {
-        let mut threads = Vec::new();
-        let spawn_err = |e: std::io::Error| ReplayError::Storage { path: shared.wal_dir.clone(), problem: format!("start background thread: {e}") };
-        if let FsyncPolicy::IntervalMs(ms) = p.fsync {
-            let sh = Arc::clone(shared);
-            let every = Duration::from_millis(ms);
-            let started = std::thread::Builder::new().name(format!("wal-flush-{}", shared.name)).spawn(move || {
-                while !sh.wait_stop(every) {
-                    if let Err(e) = sh.sync.sync_if_dirty() {
-                        tracing::error!(table = %sh.name, error = %e, "log fsync failed; further inserts are refused");
-                    }
-                }
-            });
-            match started {
-                Ok(h) => threads.push(h),
-                Err(e) => return Err((spawn_err(e), threads)),
+impl Restore<'_> {
+    /// Loads a checkpoint of a table of this capacity. `keep_priorities` false (it was taken
+    /// under another sampler) resets every stored row's weight, and the largest, to 1.
+    pub fn load(&mut self, cp: TableCheckpoint, keep_priorities: bool) {
+        debug_assert_eq!((cp.weights.len(), cp.live.len(), cp.times_sampled.len()), (self.cfg.capacity, self.cfg.capacity, self.cfg.capacity));
+        let s = &mut *self.st;
+        s.max_weight = if keep_priorities { cp.max_weight } else { 1.0 };
+        for (slot, ((&live, &times), &weight)) in cp.live.iter().zip(&cp.times_sampled).zip(&cp.weights).enumerate().take(self.cfg.capacity) {
+            s.live[slot] = live;
+            s.times_sampled[slot] = times;
+            if live {
+                s.tree.set(slot, if keep_priorities { weight } else { 1.0 });
             }
         }
-        if p.snapshot_interval_s > 0.0 {
-            let sh = Arc::clone(shared);
-            let every = Duration::from_secs_f64(p.snapshot_interval_s);
-            let started = std::thread::Builder::new()
-                .name(format!("snapshot-{}", shared.name))
-                .spawn(move || {
-                    while !sh.wait_stop(every) {
-                        match sh.snapshot_if_changed() {
-                            Ok(Some(i)) => tracing::debug!(table = %sh.name, lsn = i.lsn, copy_us = i.copy.as_micros() as u64, write_ms = i.write.as_millis() as u64, segments_deleted = i.segments_deleted, "snapshot written"),
-                            Ok(None) => {}
-                            Err(e) => tracing::warn!(table = %sh.name, error = %e, "snapshot failed; the log still holds everything"),
-                        }
-                    }
-                });
-            match started {
-                Ok(h) => threads.push(h),
-                Err(e) => return Err((spawn_err(e), threads)),
+        s.size = s.live.iter().filter(|&&l| l).count() as u64;
+        s.next_key = cp.next_key;
+        s.actors = cp.actors.into_iter().collect();
+        // The sampler continues its random stream where the checkpoint left it, so the
+        // minibatches drawn after a restart are those the table would have drawn anyway
+        // (without it the stream restarts from the table's seed).
+        if let Some(rng) = cp.sampler_rng {
+            s.rng = rng;
+        }
+        self.samples = cp.samples;
+    }
+
+    /// Key the next re-applied insert gets.
+    pub fn next_key(&self) -> u64 {
+        self.st.next_key
+    }
+
+    /// Numbers rows from `key` on: the journal's history before it is gone (no checkpoint).
+    pub fn start_at_key(&mut self, key: u64) {
+        self.st.next_key = key;
+    }
+
+    /// The data of rows `first_key..first_key + rows` that the checkpoint already counts:
+    /// written to their slots; nothing else changes.
+    pub fn fill_rows(&mut self, first_key: u64, batch: &TransitionBatch, rows: usize) {
+        let filled = &mut self.filled;
+        self.st.place_rows(first_key, batch, rows, self.cfg, |_, slot, n| filled[slot..slot + n].fill(true));
+    }
+
+    /// A journaled insert after the checkpoint, applied as [`Table::insert`] applied it (at
+    /// the next key, evicting, with its actor's de-duplication mark and counts), without the
+    /// rate limiter's wait.
+    pub fn insert(&mut self, batch: &TransitionBatch, rows: usize, unix_ms: u64) {
+        let (first_key, cap) = (self.st.next_key, self.cfg.capacity as u64);
+        for r in 0..rows {
+            self.filled[((first_key + r as u64) % cap) as usize] = true;
+        }
+        self.st.store_rows(batch, rows, self.cfg);
+        self.st.note_insert(batch, rows, unix_ms);
+    }
+
+    /// A journaled priority update after the checkpoint (nothing on a uniform table).
+    pub fn priorities(&mut self, pairs: &[(u64, f64)]) {
+        if let SamplerConfig::Prioritized { alpha, epsilon, .. } = self.cfg.sampler {
+            self.st.apply_priorities(pairs, alpha, epsilon, self.cfg.capacity as u64);
+        }
+    }
+
+    /// Drops every live row whose data did not come (loudly: the count is returned), recounts
+    /// and restores the rate limiter's counters; releases the lock.
+    pub fn finish(mut self) -> Restored {
+        let cap = self.cfg.capacity as u64;
+        let s = &mut *self.st;
+        let window = s.next_key.saturating_sub(cap);
+        let mut lost = 0u64;
+        for (slot, &has_data) in self.filled.iter().enumerate() {
+            if s.live[slot] && !(has_data && s.key[slot] >= window && s.key[slot] < s.next_key) {
+                s.live[slot] = false;
+                s.tree.set(slot, 0.0);
+                lost += 1;
             }
         }
-        Ok(threads)
-    }
-
-    /// Sleeps up to `d`; true when the table is shutting down.
-    fn wait_stop(&self, d: Duration) -> bool {
-        let stop = lock_plain(&self.stop);
-        if *stop {
-            return true;
-        }
-        *self.stop_cv.wait_timeout(stop, d).unwrap_or_else(|p| p.into_inner()).0
-    }
-
-    fn snapshot(&self) -> Result<Option<SnapshotInfo>, ReplayError> {
-        self.write_snapshot(true)
-    }
-
-    fn snapshot_if_changed(&self) -> Result<Option<SnapshotInfo>, ReplayError> {
-        self.write_snapshot(false)
-    }
-
-    /// Copies the metadata under the table lock, then (lock released) fsyncs the log up to
-    /// the copy's LSN, writes the snapshot, prunes old ones and deletes log segments that no
-    /// kept snapshot needs and whose rows are all evicted.
-    fn write_snapshot(&self, force: bool) -> Result<Option<SnapshotInfo>, ReplayError> {
-        let mut scratch = lock_plain(&self.scratch);
-        let cap = self.capacity;
-        scratch.weights.resize(cap, 0.0);
-        scratch.live.resize(cap, false);
-        scratch.times_sampled.resize(cap, 0);
-        let st = lock_plain(&self.state);
-        let copy_start = Instant::now();
-        let Some(wal) = st.wal.as_ref() else { return Ok(None) };
-        let lsn = wal.last_lsn();
-        let (inserts, samples) = st.limiter.counts();
-        if !force && scratch.mark == Some((lsn, samples)) {
-            return Ok(None);
-        }
-        for (slot, w) in scratch.weights.iter_mut().enumerate() {
-            *w = st.tree.get(slot);
-        }
-        scratch.live.copy_from_slice(&st.live);
-        scratch.times_sampled.copy_from_slice(&st.times_sampled);
-        let snap = SnapshotData {
-            meta: SnapshotMeta {
-                table: self.name.clone(),
-                lsn,
-                next_key: st.next_key,
-                capacity: cap as u64,
-                obs_dim: self.obs_dim as u64,
-                act_dim: self.act_dim as u64,
-                sampler: self.sampler.clone(),
-                max_weight: st.max_weight,
-                inserts,
-                samples,
-                size: st.size,
-                created_unix_ms: unix_ms(),
-                actors: st.actors.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
-                sampler_rng: Some(st.rng.clone()),
-            },
-            weights: std::mem::take(&mut scratch.weights),
-            live: std::mem::take(&mut scratch.live),
-            times_sampled: std::mem::take(&mut scratch.times_sampled),
-        };
-        drop(st);
-        let copy = copy_start.elapsed();
-        let write_start = Instant::now();
-        let written = self.persist_snapshot(&snap);
-        let rows = snap.meta.size;
-        (scratch.weights, scratch.live, scratch.times_sampled) = (snap.weights, snap.live, snap.times_sampled);
-        let (path, bytes, segments_deleted) = written?;
-        scratch.mark = Some((lsn, samples));
-        Ok(Some(SnapshotInfo { path, lsn, bytes, rows, copy, write: write_start.elapsed(), segments_deleted }))
-    }
-
-    /// The part of a snapshot done without the table lock: fsync the log up to the snapshot's
-    /// LSN, write the file, prune old snapshots, delete log segments no recovery can need.
-    /// Returns the path, its size and the number of segments deleted.
-    fn persist_snapshot(&self, snap: &SnapshotData) -> Result<(PathBuf, u64, usize), ReplayError> {
-        // Records the snapshot covers must be durable before it is, or a power loss could
-        // leave a snapshot ahead of its log.
-        self.sync.sync()?;
-        let (path, bytes) = self.store.write(snap)?;
-        let keep_from = self.store.prune()?.unwrap_or(0);
-        let doomed = {
-            let mut st = lock_plain(&self.state);
-            let evicted_below = st.next_key.saturating_sub(self.capacity as u64);
-            st.wal.as_mut().map(|w| w.take_deletable(keep_from, evicted_below)).unwrap_or_default()
-        };
-        let mut deleted = 0;
-        for p in &doomed {
-            match std::fs::remove_file(p) {
-                Ok(()) => deleted += 1,
-                Err(e) => tracing::warn!(table = %self.name, file = %p.display(), error = %e, "could not delete an obsolete log segment"),
-            }
-        }
-        if let Err(e) = if deleted > 0 { wal::sync_dir(&self.wal_dir) } else { Ok(()) } {
-            tracing::warn!(table = %self.name, error = %e, "fsync of the log directory failed");
-        }
-        Ok((path, bytes, deleted))
+        s.size = s.live.iter().filter(|&&l| l).count() as u64;
+        s.limiter.restore(s.next_key, self.samples);
+        Restored { rows: s.size, next_key: s.next_key, rows_lost: lost }
     }
 }
 
-impl Persist {
-    /// Stops the threads, writes a final snapshot and fsyncs the log; once.
-    fn shutdown(&self, name: &str) {
-        if self.shut.swap(true, Ordering::SeqCst) {
-            return;
+#[cfg(test)]
+mod tests {
+    use mapless_proto::{Transition, TransitionBatchBuilder};
+
+    use super::*;
+    use crate::config::RateLimiterConfig;
+
+    fn cfg() -> TableConfig {
+        TableConfig {
+            capacity: 16,
+            obs_dim: 2,
+            act_dim: 1,
+            sampler: SamplerConfig::Prioritized { alpha: 0.5, beta: 0.4, epsilon: 0.01 },
+            rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, error_buffer: 0.0 },
+            ..TableConfig::default()
         }
-        *lock_plain(&self.shared.stop) = true;
-        self.shared.stop_cv.notify_all();
-        for h in lock_plain(&self.threads).drain(..) {
-            let _ = h.join();
+    }
+
+    fn batch(seq: u64, rows: usize) -> TransitionBatch {
+        let mut b = TransitionBatchBuilder::new(2, 1);
+        for i in 0..rows {
+            let r = (seq * 100 + i as u64) as f32;
+            b.push(Transition { obs: &[r, 1.0], action: &[0.5], reward: r, next_obs: &[r, 2.0], terminal: false, truncated: false, episode_id: seq, step: i as u32, policy_version: 1 }).unwrap();
         }
-        if let Err(e) = self.shared.snapshot_if_changed() {
-            tracing::warn!(table = %name, error = %e, "final snapshot failed; the log still holds everything");
+        b.finish("a", seq)
+    }
+
+    #[test]
+    fn a_checkpoint_and_the_rows_restore_a_table_that_samples_as_the_original() {
+        let original = Table::new(cfg(), 1).unwrap();
+        let batches: Vec<TransitionBatch> = (1..=4).map(|s| batch(s, 6)).collect(); // 24 rows, ring of 16
+        for b in &batches {
+            original.insert(b, None).unwrap();
         }
-        if let Err(e) = self.shared.sync.sync() {
-            tracing::error!(table = %name, error = %e, "final log fsync failed");
+        let s = original.sample(8, None, None).unwrap();
+        original.update_priorities(&s.keys, &s.keys.iter().map(|k| (k % 3) as f64).collect::<Vec<_>>()).unwrap();
+        let cp = original.checkpoint();
+
+        // The checkpoint, then the rows it counts; batch 4's rows left out are dropped.
+        let restored = Table::new(cfg(), 99).unwrap();
+        let mut r = restored.restore();
+        r.load(cp.clone(), true);
+        for (i, b) in batches.iter().enumerate().take(3) {
+            r.fill_rows(i as u64 * 6, b, 6);
         }
+        let done = r.finish();
+        assert_eq!((done.next_key, done.rows_lost, done.rows), (24, 6, 10));
+
+        // With every row back, and an insert journaled after the checkpoint re-applied as the
+        // live insert applied it, the restored table is the original: same minibatches.
+        original.insert(&batch(5, 6), None).unwrap();
+        let restored = Table::new(cfg(), 99).unwrap();
+        let mut r = restored.restore();
+        r.load(cp, true);
+        for (i, b) in batches.iter().enumerate() {
+            r.fill_rows(i as u64 * 6, b, 6);
+        }
+        assert_eq!(r.next_key(), 24);
+        r.insert(&batch(5, 6), 6, 0);
+        assert_eq!(r.finish().rows_lost, 0);
+        assert_eq!((original.size(), original.next_key(), original.actors()["a"].last_sequence), (restored.size(), restored.next_key(), restored.actors()["a"].last_sequence));
+        for _ in 0..2 {
+            assert_eq!(original.sample(8, None, None).unwrap(), restored.sample(8, None, None).unwrap());
+        }
+        assert_eq!(original.sample(8, None, None).unwrap(), restored.sample(8, None, None).unwrap());
     }
 }

@@ -27,9 +27,9 @@
 //! A failed write is rolled back (truncated) so later records stay readable; if that fails, or
 //! an fsync fails, the log refuses further appends until it is reopened.
 //!
-//! Threading: [`Wal`] lives inside the table's state and is only touched under the table's
-//! lock, so log order is apply order. Forcing data to disk (fsync) happens through
-//! [`WalSync`], which background threads use without the table lock.
+//! Threading: [`Wal`] is the table's journal (`persist/mod.rs`, behind its own mutex); the
+//! table appends to it under the table's lock, so log order is apply order. Forcing data to
+//! disk (fsync) happens through [`WalSync`], which background threads use without either lock.
 
 use std::fs::{self, File, OpenOptions};
 use std::os::unix::fs::FileExt;
@@ -37,14 +37,9 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use crate::clock::unix_ms;
 use crate::config::FsyncPolicy;
 use crate::error::ReplayError;
-
-/// Wall-clock milliseconds since the Unix epoch (0 before it): the log's and the table's
-/// timestamps.
-pub(crate) fn unix_ms() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
-}
 
 pub(crate) const SEGMENT_MAGIC: &[u8; 8] = b"MPLSWAL\0";
 pub(crate) const FORMAT_VERSION: u32 = 1;
@@ -432,7 +427,7 @@ struct ClosedSegment {
     key_end: u64,
 }
 
-/// The appending side of the log (owned by the table state, used under the table lock).
+/// The appending side of the log (the table's journal: appended to under the table lock).
 pub(crate) struct Wal {
     dir: PathBuf,
     policy: FsyncPolicy,
@@ -655,7 +650,7 @@ impl Wal {
     /// Removes from the log's bookkeeping, and returns, the oldest closed segments that no
     /// recovery can need: every record at or below `covered_lsn` (the oldest snapshot kept)
     /// and every row already evicted (key below `evicted_below` = next_key − capacity).
-    /// The caller deletes the files outside the table lock.
+    /// The caller deletes the files outside the log's lock.
     pub fn take_deletable(&mut self, covered_lsn: u64, evicted_below: u64) -> Vec<PathBuf> {
         let n = self.closed.iter().take_while(|s| s.last_lsn <= covered_lsn && s.key_end <= evicted_below).count();
         self.closed.drain(..n).map(|s| s.path).collect()

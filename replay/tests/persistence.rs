@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use mapless_proto::v1::TransitionBatch;
 use mapless_proto::{Transition, TransitionBatchBuilder};
-use mapless_replay::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, ReplayError, SamplerConfig, Table, TableConfig};
+use mapless_replay::{DurableTable, FsyncPolicy, PersistenceConfig, RateLimiterConfig, ReplayError, SamplerConfig, Table, TableConfig};
 
 const D: usize = 3;
 
@@ -80,8 +80,8 @@ fn persist(dir: &Path) -> PersistenceConfig {
     PersistenceConfig { dir: Some(dir.to_path_buf()), segment_bytes: 4096, fsync: FsyncPolicy::IntervalMs(5), snapshot_interval_s: 0.0 }
 }
 
-fn open(c: TableConfig, dir: &Path) -> (Table, mapless_replay::RecoveryReport) {
-    Table::open(c, persist(dir), 1).unwrap()
+fn open(c: TableConfig, dir: &Path) -> (DurableTable, mapless_replay::RecoveryReport) {
+    DurableTable::open(c, persist(dir), 1).unwrap()
 }
 
 /// `rows` transitions whose reward (and obs[0]) is `first_reward + i`; every column varies.
@@ -287,7 +287,7 @@ fn big_segments(dir: &Path) -> PersistenceConfig {
 fn a_corrupt_byte_in_the_tail_is_reported_with_file_and_offset_and_everything_before_restored() {
     let _shared = shared();
     let dir = TempDir::new("corrupt");
-    let (t, _) = Table::open(cfg(1000), big_segments(dir.path()), 1).unwrap();
+    let (t, _) = DurableTable::open(cfg(1000), big_segments(dir.path()), 1).unwrap();
     let (_, start) = fill(&t, dir.path(), 10);
     let image = crash_image(dir.path(), "corrupt-img");
     drop(t);
@@ -296,7 +296,7 @@ fn a_corrupt_byte_in_the_tail_is_reported_with_file_and_offset_and_everything_be
     bytes[start as usize + 40] ^= 0x01;
     std::fs::write(&seg, &bytes).unwrap();
 
-    let (t, r) = Table::open(cfg(1000), big_segments(image.path()), 1).unwrap();
+    let (t, r) = DurableTable::open(cfg(1000), big_segments(image.path()), 1).unwrap();
     let fault = r.fault.clone().expect("corruption reported");
     assert_eq!((fault.path.clone(), fault.offset), (seg.clone(), start), "{fault}");
     assert!(fault.reason.contains("checksum"), "{fault}");
@@ -309,7 +309,7 @@ fn a_corrupt_byte_in_the_tail_is_reported_with_file_and_offset_and_everything_be
     assert!(!t.insert(&batch("a", 10, 10.0, 5), None).unwrap().duplicate);
     let before = contents(&t);
     drop(t);
-    let (t, r) = Table::open(cfg(1000), big_segments(image.path()), 1).unwrap();
+    let (t, r) = DurableTable::open(cfg(1000), big_segments(image.path()), 1).unwrap();
     assert_eq!((r.fault, contents(&t)), (None, before));
 }
 
@@ -318,14 +318,14 @@ fn a_torn_tail_is_cut_and_appends_continue_after_it() {
     let _shared = shared();
     for cut in [3u64, 30] {
         let dir = TempDir::new("torn");
-        let (t, _) = Table::open(cfg(1000), big_segments(dir.path()), 1).unwrap();
+        let (t, _) = DurableTable::open(cfg(1000), big_segments(dir.path()), 1).unwrap();
         let (_, start) = fill(&t, dir.path(), 6);
         let image = crash_image(dir.path(), "torn-img");
         drop(t);
         let seg = segments(image.path()).pop().unwrap();
         std::fs::OpenOptions::new().write(true).open(&seg).unwrap().set_len(start + cut).unwrap();
 
-        let (t, r) = Table::open(cfg(1000), big_segments(image.path()), 1).unwrap();
+        let (t, r) = DurableTable::open(cfg(1000), big_segments(image.path()), 1).unwrap();
         let fault = r.fault.clone().expect("torn record reported");
         assert_eq!((fault.path.clone(), fault.offset), (seg.clone(), start), "{fault}");
         assert!(fault.reason.starts_with("torn"), "{fault}");
@@ -337,7 +337,7 @@ fn a_torn_tail_is_cut_and_appends_continue_after_it() {
         assert_eq!(before.len(), 40);
         t.close();
         drop(t);
-        let (t, r) = Table::open(cfg(1000), big_segments(image.path()), 1).unwrap();
+        let (t, r) = DurableTable::open(cfg(1000), big_segments(image.path()), 1).unwrap();
         assert!(r.fault.is_none(), "{r:?}");
         assert_eq!(contents(&t), before);
         assert_eq!(t.actors()["a"].last_sequence, 8);
@@ -383,7 +383,7 @@ fn a_corrupt_newest_snapshot_falls_back_to_the_previous_one() {
 fn a_snapshot_ahead_of_a_damaged_log_is_set_aside_and_the_log_alone_restores_its_rows() {
     let _shared = shared();
     let dir = TempDir::new("ahead");
-    let (t, _) = Table::open(cfg(1000), big_segments(dir.path()), 1).unwrap();
+    let (t, _) = DurableTable::open(cfg(1000), big_segments(dir.path()), 1).unwrap();
     let (_, start) = fill(&t, dir.path(), 4);
     t.snapshot().unwrap();
     let image = crash_image(dir.path(), "ahead-img");
@@ -391,14 +391,14 @@ fn a_snapshot_ahead_of_a_damaged_log_is_set_aside_and_the_log_alone_restores_its
     let seg = segments(image.path()).pop().unwrap();
     std::fs::OpenOptions::new().write(true).open(&seg).unwrap().set_len(start + 10).unwrap();
 
-    let (t, r) = Table::open(cfg(1000), big_segments(image.path()), 1).unwrap();
+    let (t, r) = DurableTable::open(cfg(1000), big_segments(image.path()), 1).unwrap();
     assert_eq!(r.snapshot, None);
     assert!(r.skipped_snapshots[0].reason.contains("valid records end at 3"), "{r:?}");
     assert_eq!((t.size(), t.actors()["a"].last_sequence), (15, 3));
     // New records reuse LSN 4 onwards: the old snapshot must never be read again.
     t.insert(&batch("a", 4, 0.0, 1), None).unwrap();
     drop(t);
-    let (t, r) = Table::open(cfg(1000), big_segments(image.path()), 1).unwrap();
+    let (t, r) = DurableTable::open(cfg(1000), big_segments(image.path()), 1).unwrap();
     assert!(r.skipped_snapshots.is_empty() && r.fault.is_none(), "{r:?}");
     assert_eq!(t.size(), 16);
 }
@@ -434,12 +434,12 @@ fn a_directory_is_opened_by_one_table_at_a_time() {
     let _shared = shared();
     let dir = TempDir::new("lock");
     let (t, _) = open(cfg(10), dir.path());
-    let e = Table::open(cfg(10), persist(dir.path()), 1).err().expect("second open refused");
+    let e = DurableTable::open(cfg(10), persist(dir.path()), 1).err().expect("second open refused");
     assert!(matches!(&e, ReplayError::Storage { path, .. } if path.ends_with("LOCK")), "{e}");
     drop(t);
     let other = cfg(20);
     open(cfg(10), dir.path()).0.insert(&batch("a", 1, 0.0, 1), None).unwrap();
-    let e = Table::open(other, persist(dir.path()), 1).err().expect("another shape refused");
+    let e = DurableTable::open(other, persist(dir.path()), 1).err().expect("another shape refused");
     assert!(matches!(e, ReplayError::InvalidConfig(_)), "{e}");
 }
 
@@ -450,7 +450,7 @@ fn snapshots_do_not_stall_inserts() {
     let mut c = cfg(1_000_000);
     c.max_batch_rows = 10_000;
     let p = PersistenceConfig { fsync: FsyncPolicy::IntervalMs(100), segment_bytes: 64 << 20, ..persist(dir.path()) };
-    let (t, _) = Table::open(c.clone(), p.clone(), 1).unwrap();
+    let (t, _) = DurableTable::open(c.clone(), p.clone(), 1).unwrap();
     let t = Arc::new(t);
     let fill_start = Instant::now();
     for seq in 1..=100 {
@@ -510,7 +510,7 @@ fn snapshots_do_not_stall_inserts() {
     // Recovery of a full table from its final snapshot and ~1M logged rows.
     let size = t.size();
     drop(Arc::try_unwrap(t).ok().expect("inserter joined"));
-    let (t, r) = Table::open(c, p, 1).unwrap();
+    let (t, r) = DurableTable::open(c, p, 1).unwrap();
     println!("1M rows: reopened in {:?} ({} records, {} segments)", r.elapsed, r.records_replayed, r.segments);
     assert_eq!((t.size(), r.rows_lost, r.fault), (size, 0, None));
 }
@@ -552,7 +552,7 @@ fn every_fsync_policy_restores_acknowledged_rows_and_background_snapshots_run() 
     for fsync in [FsyncPolicy::Never, FsyncPolicy::IntervalMs(1), FsyncPolicy::Always] {
         let dir = TempDir::new("policy");
         let p = PersistenceConfig { fsync, snapshot_interval_s: 0.02, ..persist(dir.path()) };
-        let (t, _) = Table::open(cfg(300), p.clone(), 1).unwrap();
+        let (t, _) = DurableTable::open(cfg(300), p.clone(), 1).unwrap();
         for seq in 1..=40 {
             t.insert(&batch("a", seq, seq as f32, 9), None).unwrap();
         }
@@ -567,7 +567,7 @@ fn every_fsync_policy_restores_acknowledged_rows_and_background_snapshots_run() 
         let expected = (contents(&t), marks(&t));
         let image = crash_image(dir.path(), "policy-img");
         drop(t);
-        let (t, r) = Table::open(cfg(300), PersistenceConfig { dir: Some(image.path().to_path_buf()), ..p }, 1).unwrap();
+        let (t, r) = DurableTable::open(cfg(300), PersistenceConfig { dir: Some(image.path().to_path_buf()), ..p }, 1).unwrap();
         assert!(r.fault.is_none() && r.rows_lost == 0, "{fsync:?}: {r:?}");
         assert_eq!((contents(&t), marks(&t)), expected, "{fsync:?}");
     }
@@ -585,5 +585,5 @@ fn persistence_config_reads_from_yaml_with_defaults() {
     let back: PersistenceConfig = serde_yaml::from_str(&serde_yaml::to_string(&PersistenceConfig::default()).unwrap()).unwrap();
     assert_eq!(back, PersistenceConfig::default());
     let bad = PersistenceConfig { segment_bytes: 10, ..PersistenceConfig::default() };
-    assert!(matches!(Table::open(cfg(10), bad, 1), Err(ReplayError::InvalidConfig(_))));
+    assert!(matches!(DurableTable::open(cfg(10), bad, 1), Err(ReplayError::InvalidConfig(_))));
 }

@@ -353,3 +353,57 @@ fn uniform_sampling_draws_every_stored_row_equally_often_after_the_ring_wraps() 
     let chi2: f64 = counts.iter().map(|&c| (c as f64 - e).powi(2) / e).sum();
     assert!(chi2 < 24.32, "counts {counts:?}, chi2 {chi2}");
 }
+
+/// A journal that records what it is handed, and refuses while `refuse` is set.
+#[derive(Default)]
+struct Recorder {
+    events: std::sync::Mutex<Vec<String>>,
+    refuse: std::sync::atomic::AtomicBool,
+}
+
+impl mapless_replay::Journal for Recorder {
+    fn insert(&self, first_key: u64, rows: u64, _unix_ms: u64, batch_bytes: &[u8]) -> Result<(), ReplayError> {
+        if self.refuse.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(ReplayError::Storage { path: "journal".into(), problem: "refused".into() });
+        }
+        let b = <TransitionBatch as prost::Message>::decode(batch_bytes).unwrap();
+        self.events.lock().unwrap().push(format!("insert {first_key}+{rows} {}#{}", b.actor_id, b.sequence));
+        Ok(())
+    }
+    fn priorities(&self, pairs: &[(u64, f64)]) -> Result<(), ReplayError> {
+        if self.refuse.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(ReplayError::Storage { path: "journal".into(), problem: "refused".into() });
+        }
+        self.events.lock().unwrap().push(format!("priorities {pairs:?}"));
+        Ok(())
+    }
+    fn position(&self) -> u64 {
+        self.events.lock().unwrap().len() as u64
+    }
+}
+
+#[test]
+fn the_journal_gets_every_accepted_change_first_and_a_refused_one_changes_nothing() {
+    let mut t = Table::new(TableConfig { sampler: SamplerConfig::Prioritized { alpha: 1.0, beta: 0.0, epsilon: 0.0 }, ..cfg(10) }, 1).unwrap();
+    let journal = Arc::new(Recorder::default());
+    t.set_journal(Arc::clone(&journal) as Arc<dyn mapless_replay::Journal>);
+    t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    assert!(t.insert(&batch("a", 1, 0.0, 4), None).unwrap().duplicate, "a resend is acknowledged, not journaled");
+    t.insert(&batch("b", 1, 0.0, 8), None).unwrap(); // evicts keys 0 and 1
+    assert_eq!(t.update_priorities(&[0, 5, 11], &[2.0, 3.0, 4.0]).unwrap(), (2, 1));
+    let cp = t.checkpoint();
+    assert_eq!((cp.journal_position, cp.next_key, cp.size), (3, 12, 10));
+
+    // A journal that refuses: nothing stored, nothing acknowledged, no de-duplication mark.
+    journal.refuse.store(true, std::sync::atomic::Ordering::SeqCst);
+    let e = t.insert(&batch("a", 2, 0.0, 3), None).unwrap_err();
+    assert!(matches!(e, ReplayError::Storage { .. }), "{e}");
+    assert!(t.update_priorities(&[5], &[9.0]).is_err());
+    let after = t.checkpoint();
+    assert_eq!((after.next_key, after.size, after.weights.clone(), after.actors["a"].last_sequence), (cp.next_key, cp.size, cp.weights.clone(), 1));
+    journal.refuse.store(false, std::sync::atomic::Ordering::SeqCst);
+    assert!(!t.insert(&batch("a", 2, 0.0, 3), None).unwrap().duplicate, "the refused batch is taken when resent");
+
+    assert_eq!(*journal.events.lock().unwrap(), ["insert 0+4 a#1", "insert 4+8 b#1", "priorities [(5, 3.0), (11, 4.0)]", "insert 12+3 a#2"].map(String::from));
+    assert_eq!(t.checkpoint().mark(), mapless_replay::CheckpointMark { journal_position: 4, samples: 0 });
+}

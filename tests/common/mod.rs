@@ -19,7 +19,7 @@ use mapless_learner::batch::Minibatch;
 use mapless_learner::config::{AlgorithmKind, ExplorationNoise, LearnerConfig};
 use mapless_learner::envs::pendulum::{ACT_DIM, OBS_DIM, Pendulum};
 use mapless_proto::{Transition, TransitionBatchBuilder};
-use mapless_replay::{PersistenceConfig, RateLimiterConfig, SamplerConfig, Table, TableConfig};
+use mapless_replay::{DurableTable, PersistenceConfig, RateLimiterConfig, SamplerConfig, TableConfig};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
@@ -62,14 +62,15 @@ pub struct LoopState {
 
 pub struct Harness {
     pub agent: Agent,
-    pub table: Table,
+    /// Memory only or persistent; the harness uses it as the `Table` it derefs to.
+    pub table: DurableTable,
     pub s: LoopState,
     pub learning_starts: u64,
     pub batch: usize,
 }
 
 impl Harness {
-    pub fn new(cfg: &LearnerConfig, table: Table, seed: u64, learning_starts: u64) -> Self {
+    pub fn new(cfg: &LearnerConfig, table: DurableTable, seed: u64, learning_starts: u64) -> Self {
         let agent = Agent::new(cfg, OBS_DIM, ACT_DIM).expect("agent");
         let mut env = Pendulum::new(seed);
         let obs = env.reset();
@@ -82,13 +83,13 @@ impl Harness {
         }
     }
 
-    pub fn memory_table(cfg: &LearnerConfig, seed: u64) -> Table {
-        Table::new(table_config(50_000, cfg.batch_size), seed).expect("table")
+    pub fn memory_table(cfg: &LearnerConfig, seed: u64) -> DurableTable {
+        DurableTable::open(table_config(50_000, cfg.batch_size), PersistenceConfig::default(), seed).expect("table").0
     }
 
-    pub fn persistent_table(cfg: &LearnerConfig, dir: &std::path::Path, seed: u64) -> Table {
+    pub fn persistent_table(cfg: &LearnerConfig, dir: &std::path::Path, seed: u64) -> DurableTable {
         let persistence = PersistenceConfig { dir: Some(dir.to_path_buf()), snapshot_interval_s: 0.0, ..PersistenceConfig::default() };
-        Table::open(table_config(50_000, cfg.batch_size), persistence, seed).expect("table").0
+        DurableTable::open(table_config(50_000, cfg.batch_size), persistence, seed).expect("table").0
     }
 
     /// One environment step, its insert, and (after warm-up) one update.

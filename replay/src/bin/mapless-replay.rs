@@ -3,9 +3,9 @@
 //!
 //! ```text
 //!  config file ─┐
-//!  flags ───────┴─► ServerConfig ─► Table::open (restores --data-dir) ─► gRPC  (listen)
-//!                                                                    └─► /metrics (metrics)
-//!  SIGINT/SIGTERM ─► streams end UNAVAILABLE ─► servers stop ─► Table::close (final snapshot)
+//!  flags ───────┴─► ServerConfig ─► DurableTable::open (restores --data-dir) ─► gRPC  (listen)
+//!                                                                           └─► /metrics (metrics)
+//!  SIGINT/SIGTERM ─► streams end UNAVAILABLE ─► servers stop ─► DurableTable::close (final snapshot)
 //! ```
 //!
 //! Prints `listening on ADDR` (and `metrics on http://ADDR/metrics`) on stdout once bound, so a
@@ -22,7 +22,7 @@ use clap::{Parser, ValueEnum};
 use mapless_net::TlsFiles;
 use mapless_replay::server::{ServerConfig, serve};
 use mapless_replay::shm::ShmIngest;
-use mapless_replay::{SamplerConfig, Table, metrics};
+use mapless_replay::{DurableTable, SamplerConfig, metrics};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tracing::{Instrument, info, info_span, warn};
@@ -201,17 +201,17 @@ async fn start(cli: Cli) -> Result<()> {
 
 async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -> Result<()> {
     // ── Table construction: the one place the table is built. ───────────────────────────
-    // Table::open restores what `persistence.dir` (--data-dir) holds; with no dir the table
-    // lives in memory only. Opening replays the log, so it runs off the async runtime.
+    // DurableTable::open restores what `persistence.dir` (--data-dir) holds; with no dir the
+    // table lives in memory only. Opening replays the log, so it runs off the async runtime.
     let (table_cfg, persistence, seed) = (cfg.table.clone(), cfg.persistence.clone(), cfg.seed);
-    let (table, report) = tokio::task::spawn_blocking(move || Table::open(table_cfg, persistence, seed)).await.context("table open task")?.context("opening the replay table")?;
+    let (durable, report) = tokio::task::spawn_blocking(move || DurableTable::open(table_cfg, persistence, seed)).await.context("table open task")?.context("opening the replay table")?;
     if cfg.persistence.dir.is_some() {
         info!(rows = report.rows, records = report.records_replayed, snapshot = ?report.snapshot, fault = ?report.fault, elapsed = ?report.elapsed, "table restored");
         for w in &report.warnings {
             warn!("{w}");
         }
     }
-    let table = Arc::new(table);
+    let table = Arc::clone(durable.table());
     // ─────────────────────────────────────────────────────────────────────────────────────
 
     // Same-host actors write over shared memory into the same table (cleans stale iceoryx2
@@ -271,12 +271,11 @@ async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -
     }
     // Stop shared-memory ingest, then the final snapshot and log sync for a persistent table;
     // close wakes anything still blocked.
-    let closing = Arc::clone(&table);
     tokio::task::spawn_blocking(move || {
         if let Some(ingest) = shm {
             ingest.stop();
         }
-        closing.close()
+        durable.close()
     })
     .await
     .context("table close task")?;
