@@ -27,10 +27,10 @@ use anyhow::{Context, Result, bail};
 use mapless_actor::run::{ActorConfig, ExplorationSettings, ReplayTarget};
 use mapless_learner_config::{LearnerConfig, LearnerEvent, LearnerServiceConfig};
 use mapless_net::shm::ShmConfig;
+use mapless_plots::{CurvePoint, CurveStyle, training_curves_png};
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ServerInfoRequest};
 use mapless_replay::server::ServerConfig;
-use mapless_sim::plot::{CurvePoint, CurveStyle, training_curves_png};
 use serde::{Deserialize, Serialize};
 
 use crate::eval;
