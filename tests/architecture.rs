@@ -3,7 +3,7 @@
 //!
 //! ```text
 //!   proto ◄── net ◄── replay            sim ◄── actor ──► net
-//!               ▲◄── learner-config ◄── learner (tch)
+//!               ▲◄── learner-config ◄── learner (tch)     sim ◄── plots
 //!   cli (mapless): everything but the learner        tests: everything
 //! ```
 
@@ -16,12 +16,14 @@ use serde_json::Value;
 const ALLOWED: &[(&str, &[&str])] = &[
     ("mapless-proto", &[]),
     ("mapless-sim", &[]),
+    // pictures of the simulator's maps and episodes, and training curves
+    ("mapless-plots", &["mapless-sim"]),
     ("mapless-net", &["mapless-proto"]),
     ("mapless-replay", &["mapless-proto", "mapless-net"]),
     ("mapless-actor", &["mapless-proto", "mapless-sim", "mapless-net"]),
     ("mapless-learner-config", &["mapless-proto", "mapless-net"]),
     ("mapless-learner", &["mapless-proto", "mapless-net", "mapless-learner-config"]),
-    ("mapless-cli", &["mapless-proto", "mapless-sim", "mapless-net", "mapless-replay", "mapless-actor", "mapless-learner-config"]),
+    ("mapless-cli", &["mapless-proto", "mapless-sim", "mapless-plots", "mapless-net", "mapless-replay", "mapless-actor", "mapless-learner-config"]),
 ];
 
 fn metadata(no_deps: bool) -> Value {

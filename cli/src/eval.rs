@@ -7,8 +7,8 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
 use mapless_actor::{ActMode, Policy};
+use mapless_plots::{Canvas, default_px_per_m};
 use mapless_proto::weights_file::read_safetensors_file;
-use mapless_sim::render::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, World};
 use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
@@ -94,11 +94,9 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
         };
         let s = e.summary(Some(last));
         if let Some(d) = out_dir {
-            let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} EVALUATION {k}, POLICY V{}", world.map.name, policy.version()))?;
-            c.episode(&world.map, e.trajectory().unwrap_or(&[]), e.tracker(), world.cfg.exploration.ring_width_m, s.terminal);
-            let shade = if world.map.shaded.is_empty() { String::new() } else { format!("  SHADE {:.0} S", s.shaded_time_s) };
-            let end = if s.terminal { "  COLLISION" } else { "" };
-            c.footer(&format!("STEPS {}  RETURN {:.1}  EQS {}  EES {:.2}  DIST {:.1} M{shade}{end}", s.steps, s.return_, s.eqs, s.ees, s.distance_m));
+            let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} — evaluation {k}, policy v{}", world.map.name, policy.version()))?;
+            c.episode(&world.map, e.trajectory().unwrap_or(&[]), e.tracker(), world.cfg.exploration.ring_width_m, s.terminal)?;
+            c.footer(&crate::episode_footer(&s, !world.map.shaded.is_empty()))?;
             c.save_png(&d.join(format!("episode-{k}.png")))?;
         }
         out.push(EvalEpisode { episode: k, steps: s.steps, episode_return: s.return_, collided: s.terminal, eqs: s.eqs, ees: s.ees, distance_m: s.distance_m, shaded_time_s: s.shaded_time_s });

@@ -22,7 +22,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use mapless_net::metrics::bench_report;
-use mapless_sim::render::{Canvas, default_px_per_m};
+use mapless_plots::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, RaycastMethod, RewardConfig, World};
 use rand::{Rng, SeedableRng};
 
@@ -375,9 +375,9 @@ fn maps_list() -> Result<()> {
 fn maps_show(map: &str, out: &Path, px_per_m: Option<f32>) -> Result<()> {
     let m = Map::resolve(map)?;
     let ppm = px_per_m.unwrap_or_else(|| default_px_per_m(&m));
-    let title = format!("{}  {:.0} M X {:.0} M", m.name, m.bounds.width(), m.bounds.height());
+    let title = format!("{} — {:.0} m × {:.0} m", m.name, m.bounds.width(), m.bounds.height());
     let mut c = Canvas::map(&m, ppm, &title)?;
-    c.footer(&format!("{} OBSTACLES, {} SHADED REGIONS", m.obstacles.len(), m.shaded.len()));
+    c.footer(&format!("{} obstacles, {} shaded regions", m.obstacles.len(), m.shaded.len()))?;
     c.save_png(out)?;
     println!("wrote {}", out.display());
     Ok(())
@@ -396,6 +396,18 @@ fn maps_rasterize(map: &str, resolution: f64, out: &PathBuf) -> Result<()> {
     std::fs::write(&yaml_path, yaml).with_context(|| format!("writing {}", yaml_path.display()))?;
     println!("wrote {} ({w}x{h} px at {resolution} m) and {}", pgm_path.display(), yaml_path.display());
     Ok(())
+}
+
+/// The footer line of an episode picture (`mapless rollout`, evaluations).
+fn episode_footer(s: &mapless_sim::EpisodeSummary, shaded_map: bool) -> String {
+    let mut parts = vec![format!("{} steps", s.steps), format!("return {:.1}", s.return_), format!("EQS {}", s.eqs), format!("EES {:.2}", s.ees), format!("{:.1} m driven", s.distance_m)];
+    if shaded_map {
+        parts.push(format!("{:.0} s in shade", s.shaded_time_s));
+    }
+    if s.terminal {
+        parts.push("collision".into());
+    }
+    parts.join("  ·  ")
 }
 
 fn rollout(a: RolloutArgs) -> Result<()> {
@@ -425,12 +437,10 @@ fn rollout(a: RolloutArgs) -> Result<()> {
     let s = env.summary(last);
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let png = a.out.join("trajectory.png");
-    let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} ROLLOUT, SEED {}", world.map.name, a.seed))?;
+    let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} — rollout, seed {}", world.map.name, a.seed))?;
     let traj = env.trajectory().unwrap_or(&[]);
-    c.episode(&world.map, traj, env.tracker(), world.cfg.exploration.ring_width_m, s.terminal);
-    let shade = if world.map.shaded.is_empty() { String::new() } else { format!("  SHADE {:.0} S", s.shaded_time_s) };
-    let end = if s.terminal { "  COLLISION" } else { "" };
-    c.footer(&format!("STEPS {}  RETURN {:.1}  EQS {}  EES {:.2}  DIST {:.1} M{shade}{end}", s.steps, s.return_, s.eqs, s.ees, s.distance_m));
+    c.episode(&world.map, traj, env.tracker(), world.cfg.exploration.ring_width_m, s.terminal)?;
+    c.footer(&episode_footer(&s, !world.map.shaded.is_empty()))?;
     c.save_png(&png)?;
     let mut json = serde_json::to_value(&s)?;
     json["map"] = world.map.name.clone().into();

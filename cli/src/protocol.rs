@@ -1,22 +1,19 @@
 //! The paper's protocol as stated rules: when a run has converged (Table III's "convergence
 //! episode") and when an evaluation meets the paper's exploration figures (the stop criterion).
 
+use mapless_sim::stats::moving_average;
+
 use crate::eval::EvalSummary;
 use crate::train::episodes::EpisodeRow;
 
-/// Order-`window` moving average of `values` at every index from `window − 1` on.
-fn moving_average(values: &[f64], window: usize) -> Vec<f64> {
+/// The order-`window` moving averages of `values` over full windows only: entry k averages
+/// `values[k..k + window]` (`mapless_sim::stats::moving_average` from index `window − 1` on;
+/// non-finite values are left out of their windows). Empty with fewer than `window` values.
+fn full_window_averages(values: &[f64], window: usize) -> Vec<f64> {
     if window == 0 || values.len() < window {
         return Vec::new();
     }
-    let mut out = Vec::with_capacity(values.len() + 1 - window);
-    let mut sum: f64 = values[..window].iter().sum();
-    out.push(sum / window as f64);
-    for i in window..values.len() {
-        sum += values[i] - values[i - window];
-        out.push(sum / window as f64);
-    }
-    out
+    moving_average(values, window).split_off(window - 1)
 }
 
 /// The convergence episode: the first episode from which the order-`window` moving averages of
@@ -29,7 +26,7 @@ fn moving_average(values: &[f64], window: usize) -> Vec<f64> {
 pub fn convergence_episode(rows: &[EpisodeRow], window: usize, tolerance: f64) -> Option<u64> {
     let ret: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
     let steps: Vec<f64> = rows.iter().map(|r| f64::from(r.steps)).collect();
-    let (ma_r, ma_s) = (moving_average(&ret, window), moving_average(&steps, window));
+    let (ma_r, ma_s) = (full_window_averages(&ret, window), full_window_averages(&steps, window));
     let (fr, fs) = (*ma_r.last()?, *ma_s.last()?);
     let within = |v: f64, f: f64| (v - f).abs() <= tolerance * f.abs();
     // ma_*[k] is the average ending at episode k + window (1-based).
@@ -87,6 +84,21 @@ mod tests {
                 shaded_time_s: 0.0,
             })
             .collect()
+    }
+
+    #[test]
+    fn full_window_averages_start_at_the_first_full_window() {
+        assert_eq!(full_window_averages(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0], 3), vec![2.0, 3.0, 4.0, 5.0]);
+        assert_eq!(full_window_averages(&[1.0, 2.0], 3), Vec::<f64>::new(), "fewer values than the window");
+        assert_eq!(full_window_averages(&[1.0, 2.0], 0), Vec::<f64>::new(), "window 0");
+        // Each entry is the plain mean of its window, as the running sum this replaced gave.
+        let v: Vec<f64> = (0..5000).map(|i| ((i * 7919) % 1000) as f64 * 0.37 - 100.0).collect();
+        let ma = full_window_averages(&v, 50);
+        assert_eq!(ma.len(), v.len() - 49);
+        for (k, a) in ma.iter().enumerate() {
+            let direct = v[k..k + 50].iter().sum::<f64>() / 50.0;
+            assert!((a - direct).abs() < 1e-9, "entry {k}: {a} vs {direct}");
+        }
     }
 
     #[test]

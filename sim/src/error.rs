@@ -19,8 +19,6 @@ pub enum SimError {
     /// Rejection sampling found no pose with the required clearance.
     #[error("map `{map}`: no collision-free start with {clearance_m} m clearance found in {attempts} attempts")]
     NoFreeStart { map: String, clearance_m: f64, attempts: usize },
-    #[error("cannot write {path}: {problem}")]
-    Output { path: PathBuf, problem: String },
 }
 
 pub type Result<T, E = SimError> = std::result::Result<T, E>;

@@ -2,11 +2,15 @@
 //!
 //! ```text
 //!   Map (built-in / vector YAML / ROS map_server) ──► World (Scene index + EnvConfig)
-//!        │                                               │  shared by Arc
-//!        ▼                                               ▼
-//!   render (PNG pictures)              Env (one vehicle) / VecEnv (many, one call)
+//!                                                        │  shared by Arc
+//!                                                        ▼
+//!                                      Env (one vehicle) / VecEnv (many, one call)
 //!                                         bicycle model · range sensor · reward · EQS/EES
+//!   paper (the paper's numbers) · stats (order-W moving average)
 //! ```
+//!
+//! Pictures of maps, episodes and training curves live in `mapless-plots`, which reads these
+//! types; the simulator itself draws nothing.
 //!
 //! No async, no global state: every random draw comes from a vehicle's own seeded stream, so a
 //! seed fixes an episode exactly. Units are in names (`range_m`, `heading_rad`). Every number
@@ -20,14 +24,12 @@ pub mod env;
 pub mod eqs_analysis;
 pub mod error;
 pub mod explore;
-mod font;
 mod image;
 pub mod map;
 pub mod paper;
-pub mod plot;
-pub mod render;
 pub mod scene;
 pub mod sensor;
+pub mod stats;
 pub mod vehicle;
 
 pub use config::{EnvConfig, EpisodeConfig, ExplorationConfig, InnerSum, RaycastMethod, RewardConfig, SensorConfig, VehicleConfig};

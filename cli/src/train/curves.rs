@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use mapless_sim::plot::{CurvePoint, CurveStyle, training_curves_png};
+use mapless_plots::{CurvePoint, CurveStyle, training_curves_png};
 
 use super::config::TrainConfig;
 use super::episodes::EpisodeRow;
@@ -36,7 +36,7 @@ impl Curves {
 pub(crate) fn draw_curves(run: &Path, cfg: &TrainConfig, rows: &[EpisodeRow]) {
     let points: Vec<CurvePoint> = rows.iter().map(|r| CurvePoint { episode: r.episode, episode_return: r.episode_return, steps: r.steps }).collect();
     let style = CurveStyle {
-        title: format!("{} - order-{} moving averages", cfg.name, cfg.stop.window),
+        title: format!("{} – order-{} moving averages", cfg.name, cfg.stop.window),
         window: cfg.stop.window,
         return_goal: cfg.stop.average_return,
         steps_goal: cfg.stop.average_steps,

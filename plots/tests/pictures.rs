@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use mapless_sim::render::{Canvas, default_px_per_m};
+use mapless_plots::{Canvas, default_px_per_m};
 use mapless_sim::{Env, EnvConfig, Map, Pose, World};
 
 fn is_dark(p: [u8; 4]) -> bool {
@@ -21,8 +21,16 @@ fn map_picture_shows_obstacles_free_floor_and_shade() {
     assert!(!is_dark(at(5.0, 0.0)), "open ground is light");
     let shade = at(-6.0, 1.5); // under the canopy of the tree at (−6, 0), off the trunk
     assert!(shade[1] > shade[0] + 30 && shade[1] > shade[2] + 30, "canopy is green: {shade:?}");
-    // 20 m at 20 px/m plus margins, title and footer.
+    // 20 m at 20 px/m plus margins, title, axes and footer.
     assert!(c.width() >= 400 && c.height() >= 400);
+    // Axes in metres: tick labels left of and below the map, and the title above it.
+    let dark = |xs: std::ops::Range<u32>, ys: std::ops::Range<u32>| ys.flat_map(|y| xs.clone().map(move |x| (x, y))).filter(|&(x, y)| is_dark(c.pixel(x, y).unwrap())).count();
+    let (left, top) = c.world_to_px(-10.0, 10.0);
+    let (right, bottom) = c.world_to_px(10.0, -10.0);
+    let (left, top, right, bottom) = (left as u32, top as u32, right as u32, bottom as u32);
+    assert!(dark(left - 40..left - 8, top..bottom) > 100, "y tick labels");
+    assert!(dark(left..right, bottom + 6..bottom + 24) > 100, "x tick labels");
+    assert!(dark(0..c.width(), 0..top - 4) > 50, "title");
 }
 
 #[test]
@@ -49,15 +57,24 @@ fn episode_picture_marks_visited_cells_and_writes_a_png() {
         let (px, py) = c.world_to_px(-5.0, 8.0);
         c.pixel(px as u32, py as u32).unwrap()
     };
-    c.episode(map, env.trajectory().unwrap(), env.tracker(), world.cfg.exploration.ring_width_m, false);
+    c.episode(map, env.trajectory().unwrap(), env.tracker(), world.cfg.exploration.ring_width_m, false).unwrap();
     let (px, py) = c.world_to_px(-5.0, -8.8);
     let after = c.pixel(px as u32, py as u32).unwrap();
     assert!(after[2] > after[0] && after != before, "visited cell is tinted blue: {before:?} -> {after:?}");
     let (px, py) = c.world_to_px(-5.0, 8.0);
     assert_eq!(c.pixel(px as u32, py as u32).unwrap(), far_before, "unvisited cells untouched");
+    // Footer lines go below the axes; a second one makes the picture taller.
+    let h = c.height();
+    let (_, bottom) = c.world_to_px(0.0, -12.5);
+    let footer_dark = |c: &Canvas, ys: std::ops::Range<u32>| ys.flat_map(|y| (0..c.width()).map(move |x| (x, y))).filter(|&(x, y)| c.pixel(x, y).unwrap()[0] < 150).count();
+    assert_eq!(footer_dark(&c, bottom as u32 + 50..h), 0);
+    c.footer("1000 steps · return 442.3 · EQS 195").unwrap();
+    assert!(footer_dark(&c, bottom as u32 + 50..h) > 50, "footer line written");
+    assert_eq!(c.height(), h);
+    c.footer("a second line").unwrap();
+    assert!(c.height() > h && footer_dark(&c, h..c.height()) > 20);
     let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("pictures/episode.png");
     c.save_png(&path).unwrap();
-    let dec = png::Decoder::new(std::fs::File::open(&path).unwrap());
-    let info = dec.read_info().unwrap().info().clone();
-    assert_eq!((info.width, info.height), (c.width(), c.height()));
+    let img = image::open(&path).unwrap();
+    assert_eq!((img.width(), img.height()), (c.width(), c.height()));
 }

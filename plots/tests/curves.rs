@@ -1,10 +1,11 @@
-//! Training-curve pictures: the moving average is MATLAB's trailing average, and the PNG shows
-//! the bold average line where the data is.
+//! Training-curve pictures: the PNG shows the bold moving-average line where the data is, the
+//! goal lines, and text where it should be. (The moving average itself is tested in
+//! `mapless_sim::stats`.)
 
 use std::path::{Path, PathBuf};
 
-use mapless_sim::SimError;
-use mapless_sim::plot::{AVERAGE_RGB, CurvePoint, CurveStyle, GOAL_RGB, HEIGHT_PX, WIDTH_PX, moving_average, training_curves_png};
+use mapless_plots::PlotError;
+use mapless_plots::curves::{AVERAGE_RGB, CurvePoint, CurveStyle, GOAL_RGB, HEIGHT_PX, NOTE_RGB, WIDTH_PX, training_curves_png};
 
 fn out(name: &str) -> PathBuf {
     Path::new(env!("CARGO_TARGET_TMPDIR")).join("plot").join(name)
@@ -18,14 +19,8 @@ struct Decoded {
 
 impl Decoded {
     fn open(path: &Path) -> Decoded {
-        let mut dec = png::Decoder::new(std::fs::File::open(path).unwrap());
-        dec.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-        let mut reader = dec.read_info().unwrap();
-        let mut buf = vec![0; reader.output_buffer_size()];
-        let info = reader.next_frame(&mut buf).unwrap();
-        assert_eq!(info.color_type, png::ColorType::Rgba, "tiny-skia writes RGBA");
-        buf.truncate(info.buffer_size());
-        Decoded { width: info.width, height: info.height, rgba: buf }
+        let img = image::open(path).unwrap().to_rgba8();
+        Decoded { width: img.width(), height: img.height(), rgba: img.into_raw() }
     }
 
     fn rgb(&self, x: u32, y: u32) -> [u8; 3] {
@@ -48,11 +43,17 @@ impl Decoded {
     }
 }
 
-// Layout (see plot.rs): plot areas span x 92..972; the return panel y 68..303 and the steps
-// panel y 362..597, each with its title and legend in the 22 px above it.
-const PLOT_X: std::ops::Range<u32> = 93..971;
-const RETURN_ROWS: std::ops::Range<u32> = 66..306;
-const STEPS_ROWS: std::ops::Range<u32> = 360..600;
+// Layout (see curves.rs): plot areas span x 96..972; the return panel y 80..310 and the steps
+// panel y 380..610, each with its caption and legend on the line above it, tick labels below
+// and left of it, axis titles beyond those.
+const PLOT_X: std::ops::Range<u32> = 97..971;
+const RETURN_ROWS: std::ops::Range<u32> = 81..310;
+const STEPS_ROWS: std::ops::Range<u32> = 381..610;
+
+/// Dark text pixels (tick labels, captions, titles) in a region.
+fn text_pixels(img: &Decoded, xs: std::ops::Range<u32>, ys: std::ops::Range<u32>) -> usize {
+    ys.flat_map(|y| xs.clone().map(move |x| (x, y))).filter(|&(x, y)| img.rgb(x, y).iter().all(|&c| c < 90)).count()
+}
 
 /// A deterministic learning curve: return rises towards 330, steps towards 1000, with noise.
 fn learning_curve(n: u64) -> Vec<CurvePoint> {
@@ -69,43 +70,13 @@ fn learning_curve(n: u64) -> Vec<CurvePoint> {
         .collect()
 }
 
-fn close(a: &[f64], b: &[f64]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x.is_nan() && y.is_nan()) || (x - y).abs() < 1e-9)
-}
-
-#[test]
-fn moving_average_matches_hand_computed_values() {
-    let v = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
-    // Warm-up: 1, (1+2)/2, then full windows (1+2+3)/3, (2+3+4)/3 …
-    assert!(close(&moving_average(&v, 3), &[1.0, 1.5, 2.0, 3.0, 4.0, 5.0]));
-    assert!(close(&moving_average(&v, 1), &v), "window 1 is the values themselves");
-    assert!(close(&moving_average(&v, 10), &[1.0, 1.5, 2.0, 2.5, 3.0, 3.5]), "window longer than the data: running mean");
-    assert!(close(&moving_average(&[10.0, 0.0, 20.0, -10.0], 2), &[10.0, 5.0, 10.0, 5.0]));
-    assert!(moving_average(&[], 50).is_empty());
-    // Non-finite values are skipped; a window without finite values gives NaN.
-    assert!(close(&moving_average(&[1.0, f64::NAN, 3.0, 5.0], 2), &[1.0, 1.0, 3.0, 4.0]));
-    assert!(close(&moving_average(&[f64::NAN, f64::INFINITY, 2.0], 2), &[f64::NAN, f64::NAN, 2.0]));
-}
-
-#[test]
-fn moving_average_of_a_long_series_does_not_drift() {
-    let v: Vec<f64> = (0..100_000).map(|i| 1e6 + ((i * 7919) % 1000) as f64 * 0.001).collect();
-    let w = 50;
-    let fast = moving_average(&v, w);
-    for i in [0usize, 1, 48, 49, 50, 12_345, 99_998, 99_999] {
-        let lo = (i + 1).saturating_sub(w);
-        let direct = v[lo..=i].iter().sum::<f64>() / (i + 1 - lo) as f64;
-        assert!((fast[i] - direct).abs() < 1e-6, "entry {i}: {} vs {direct}", fast[i]);
-    }
-}
-
 #[test]
 fn window_zero_is_an_error_and_writes_nothing() {
     let path = out("window0.png");
     let _ = std::fs::remove_file(&path);
     let style = CurveStyle { window: 0, ..CurveStyle::default() };
     let err = training_curves_png(&learning_curve(10), &style, &path).unwrap_err();
-    assert!(matches!(err, SimError::InvalidConfig(_)), "{err}");
+    assert!(matches!(err, PlotError::Invalid { .. }), "{err}");
     assert!(!path.exists());
 }
 
@@ -147,6 +118,27 @@ fn learning_curve_picture_shows_the_rising_average_in_both_panels() {
         let goal = img.find(GOAL_RGB, PLOT_X, rows);
         assert!(goal.len() > 200, "{name}: goal line drawn ({} pixels)", goal.len());
     }
+    // The goal labels ("goal ≥ 320") in red above the right end of each goal line.
+    for (name, rows) in [("return", RETURN_ROWS), ("steps", STEPS_ROWS)] {
+        let line = img.find(GOAL_RGB, 100..800, rows.clone());
+        let line_y = line.iter().map(|&(_, y)| y).min().unwrap();
+        // Anti-aliased text: red-dominated pixels, not only the exact colour.
+        let label = (rows.start..line_y - 2).flat_map(|y| (860..971).map(move |x| (x, y))).filter(|&(x, y)| {
+            let [r, g, b] = img.rgb(x, y);
+            r > 150 && g < 150 && b < 150 && r > g + 60
+        });
+        let n = label.count();
+        assert!(n > 40, "{name}: goal label ({n} pixels)");
+    }
+    // Axes: tick labels left of and below both panels, axis titles, the title and captions.
+    for (name, rows) in [("return", RETURN_ROWS), ("steps", STEPS_ROWS)] {
+        assert!(text_pixels(&img, 40..92, rows.clone()) > 60, "{name}: y tick labels");
+        assert!(text_pixels(&img, PLOT_X, rows.end + 6..rows.end + 24) > 60, "{name}: x tick labels");
+        assert!(text_pixels(&img, 8..30, rows.clone()) > 20, "{name}: y axis title");
+        assert!(text_pixels(&img, 96..300, rows.start - 26..rows.start - 2) > 60, "{name}: caption");
+    }
+    assert!(text_pixels(&img, 480..600, 640..660) > 20, "x axis title");
+    assert!(text_pixels(&img, 20..400, 10..40) > 100, "title");
     // Outside the plot areas (left margin below the title) the picture is white.
     assert_eq!(img.rgb(5, 200), [255, 255, 255]);
 }
@@ -166,7 +158,8 @@ fn non_finite_points_do_not_panic() {
     let all_nan: Vec<CurvePoint> = (1..=3000).map(|e| CurvePoint { episode: e, episode_return: f64::NAN, steps: 5 }).collect();
     training_curves_png(&all_nan, &CurveStyle::default(), &out("all-nan.png")).unwrap();
     let img = Decoded::open(&out("all-nan.png"));
-    assert!(img.find(AVERAGE_RGB, PLOT_X, RETURN_ROWS).len() < 100, "no average line where no value is finite (legend swatch only)");
+    assert!(img.find(AVERAGE_RGB, PLOT_X, RETURN_ROWS).is_empty(), "no average line where no value is finite");
+    assert!(!img.find(NOTE_RGB, 400..700, 180..210).is_empty(), "'no finite values' in the return panel");
     assert!(img.find(AVERAGE_RGB, PLOT_X, STEPS_ROWS).len() > 500, "steps are still drawn");
     // Extreme finite values.
     let extreme = [CurvePoint { episode: 1, episode_return: f64::MAX, steps: 0 }, CurvePoint { episode: 2, episode_return: -f64::MAX, steps: u32::MAX }];
@@ -181,12 +174,22 @@ fn empty_input_draws_empty_axes() {
     let img = Decoded::open(&path);
     assert_eq!((img.width, img.height), (1000, 700));
     // Only the legend swatch (above the plot area) carries the average colour.
-    assert!(img.find(AVERAGE_RGB, PLOT_X, 70..300).is_empty(), "no data line");
+    assert!(img.find(AVERAGE_RGB, PLOT_X, RETURN_ROWS).is_empty(), "no data line");
+    assert!(!img.find(AVERAGE_RGB, 700..971, 50..80).is_empty(), "legend swatch");
     // "no episodes yet" in grey in the middle of each panel.
-    assert!(!img.find([120, 120, 120], 400..700, 170..200).is_empty(), "message in the return panel");
-    assert!(!img.find([120, 120, 120], 400..700, 465..495).is_empty(), "message in the steps panel");
-    // A single episode works too.
+    assert!(!img.find(NOTE_RGB, 400..700, 180..210).is_empty(), "message in the return panel");
+    assert!(!img.find(NOTE_RGB, 400..700, 480..510).is_empty(), "message in the steps panel");
+    // Axes with tick labels even without data.
+    assert!(text_pixels(&img, 40..92, RETURN_ROWS) > 60 && text_pixels(&img, PLOT_X, 316..334) > 60);
+    // A single episode works too: its dot is drawn.
     training_curves_png(&[CurvePoint { episode: 1, episode_return: 3.0, steps: 7 }], &CurveStyle::default(), &out("one.png")).unwrap();
+    let img = Decoded::open(&out("one.png"));
+    let bluish = |(x, y): (u32, u32)| {
+        let p = img.rgb(x, y);
+        p[2] > 200 && u16::from(p[2]) > u16::from(p[0]) + 20
+    };
+    assert!(PLOT_X.flat_map(|x| RETURN_ROWS.map(move |y| (x, y))).any(bluish), "the one episode's dot");
+    assert!(img.find(AVERAGE_RGB, 960..975, RETURN_ROWS).len() >= 4, "its average, a dot on the axis' end");
 }
 
 #[test]
