@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
-use mapless_actor::sink::{GrpcSink, Sink};
+use mapless_actor::sink::{InsertClient, Sink};
 use mapless_net::GrpcEndpoint;
 use mapless_proto::v1::TransitionBatch;
 use mapless_proto::{Transition, TransitionBatchBuilder};
@@ -67,7 +67,7 @@ fn grpc_sink_delivers_every_batch_exactly_once_across_a_replay_restart() {
     let t = table();
     let server = serve(Arc::clone(&t), addr);
     let stop = AtomicBool::new(false);
-    let mut sink = Sink::Grpc(GrpcSink::new(rt.handle().clone(), GrpcEndpoint::new(format!("http://{addr}")), 4));
+    let mut sink = Sink::Grpc(InsertClient::new(rt.handle().clone(), GrpcEndpoint::new(format!("http://{addr}")), 4));
 
     for seq in 1..=30 {
         sink.send(batch("actor-test", seq, 10), &stop).unwrap();

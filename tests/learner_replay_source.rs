@@ -11,7 +11,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use mapless_learner::LearnerError;
-use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig, ReplaySource, sample_stream_window};
+use mapless_learner::source::{GrpcEndpoint, GrpcSource, ReplaySource, SampleConfig, sample_stream_window};
 use mapless_net::{Security, TlsPem};
 use mapless_proto::v1::{SampledBatch, TransitionBatch};
 use mapless_proto::{Transition, TransitionBatchBuilder};
@@ -165,8 +165,8 @@ impl Drop for Replay {
     }
 }
 
-fn config(endpoint: GrpcEndpoint) -> GrpcSourceConfig {
-    GrpcSourceConfig { backoff_initial: Duration::from_millis(20), backoff_max: Duration::from_millis(200), expected_dims: Some((OBS, ACT)), ..GrpcSourceConfig::new(endpoint, BATCH) }
+fn config(endpoint: GrpcEndpoint) -> SampleConfig {
+    SampleConfig { backoff_initial: Duration::from_millis(20), backoff_max: Duration::from_millis(200), expected_dims: Some((OBS, ACT)), ..SampleConfig::new(endpoint, BATCH) }
 }
 
 fn next(source: &mut GrpcSource) -> SampledBatch {
@@ -308,7 +308,7 @@ fn grpc_source_waits_for_a_service_that_is_not_up_yet_and_for_warm_up() {
 fn errors_retrying_cannot_fix_stop_the_source_with_a_clear_message() {
     let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()) }, ..ServeOptions::default() };
     let replay = Replay::start(filled_table(SamplerConfig::Uniform, 20), options);
-    let stopped = |config: GrpcSourceConfig, needle: &str| {
+    let stopped = |config: SampleConfig, needle: &str| {
         let mut source = GrpcSource::start(config).expect("start");
         match source.next_batch_timeout(PATIENCE) {
             Err(e @ LearnerError::ReplaySourceStopped { .. }) => {
@@ -322,15 +322,15 @@ fn errors_retrying_cannot_fix_stop_the_source_with_a_clear_message() {
     stopped(config(replay.endpoint()), "Unauthenticated");
     stopped(config(replay.endpoint().with_token("wrong")), "wrong bearer token");
     let token = || replay.endpoint().with_token("open-sesame");
-    stopped(GrpcSourceConfig { table: "elsewhere".into(), ..config(token()) }, "elsewhere");
-    stopped(GrpcSourceConfig { expected_dims: Some((17, 2)), ..config(token()) }, "obs_dim 17");
-    stopped(GrpcSourceConfig { batch_size: 1000, ..config(token()) }, "batch_size");
+    stopped(SampleConfig { table: "elsewhere".into(), ..config(token()) }, "elsewhere");
+    stopped(SampleConfig { expected_dims: Some((17, 2)), ..config(token()) }, "obs_dim 17");
+    stopped(SampleConfig { batch_size: 1000, ..config(token()) }, "batch_size");
 
     // Configs that can never work are refused up front.
     for bad in [
-        GrpcSourceConfig { batch_size: 0, ..config(token()) },
-        GrpcSourceConfig { queue_depth: 0, ..config(token()) },
-        GrpcSourceConfig { importance_beta: 1.5, ..config(token()) },
+        SampleConfig { batch_size: 0, ..config(token()) },
+        SampleConfig { queue_depth: 0, ..config(token()) },
+        SampleConfig { importance_beta: 1.5, ..config(token()) },
         config(GrpcEndpoint::new("http://[not a uri")),
         config(GrpcEndpoint::new("https://127.0.0.1:1")),
         config(replay.endpoint().with_token("new\nline")),

@@ -3,11 +3,12 @@
 //! - [`policy`]: the learner's published policy network ([`mapless_proto::v1::WeightsSnapshot`],
 //!   safetensors naming) evaluated in pure Rust for all of a process's vehicles at once;
 //! - [`noise`]: exploration noise for the deterministic policies (OU for DDPG, Gaussian for TD3);
-//! - [`sink`]: delivery of transition batches to the replay (iceoryx2 or gRPC), exactly once;
+//! - [`sink`]: which replay client an actor delivers its transition batches with (iceoryx2 or
+//!   gRPC; the exactly-once clients themselves are `mapless_net::insert`);
 //! - [`run`]: one actor process's loop (the `mapless-actor` binary).
 //!
 //! How it reaches the replay, the learner's weights and the stats collector (endpoints,
-//! security, the shared-memory writer, the weights and stats clients) is `mapless-net`.
+//! security, the shared-memory writer, the insert, weights and stats clients) is `mapless-net`.
 
 pub mod policy;
 pub mod run;

@@ -27,7 +27,7 @@ use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 
-use crate::sink::{GrpcSink, ShmSink, Sink, SinkStats};
+use crate::sink::{InsertClient, InsertStats, ShmInsertClient, Sink};
 use crate::{ActMode, ExplorationNoise, NoiseProcess, Policy};
 
 /// How an actor reaches the replay.
@@ -130,7 +130,7 @@ pub struct ActorReport {
     pub policies_loaded: u64,
     pub bad_snapshots: u64,
     pub unacked_at_exit: bool,
-    pub sink: SinkStats,
+    pub sink: InsertStats,
 }
 
 /// What `/metrics` shows, updated every step.
@@ -200,12 +200,12 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
             // Short waits while the window is full, so a stop request is seen within 0.5 s
             // even while the replay's rate limiter holds inserts back.
             shm.send_timeout_ms = 500;
-            match ShmSink::connect(shm, actor_id, &stop) {
+            match ShmInsertClient::connect(shm, actor_id, &stop) {
                 Ok(s) => Sink::Shm(s),
                 Err(_) => return Ok(ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() }),
             }
         }
-        ReplayTarget::Grpc { uri } => Sink::Grpc(GrpcSink::new(rt.handle().clone(), cfg.security.endpoint(uri)?, cfg.max_in_flight)),
+        ReplayTarget::Grpc { uri } => Sink::Grpc(InsertClient::new(rt.handle().clone(), cfg.security.endpoint(uri)?, cfg.max_in_flight)),
     };
 
     let mut report = ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() };

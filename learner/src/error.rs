@@ -222,6 +222,8 @@ impl From<mapless_net::NetError> for LearnerError {
             NetError::Config { reason } => LearnerError::ReplaySourceConfig { reason },
             NetError::FileIo { path, error } => LearnerError::FileIo { path, error },
             NetError::Invalid { origin, reason } => LearnerError::InvalidWeights { origin, reason },
+            NetError::ClientConfig { reason, .. } => LearnerError::ReplaySourceConfig { reason },
+            NetError::Stopped { reason, .. } => LearnerError::ReplaySourceStopped { reason },
         }
     }
 }

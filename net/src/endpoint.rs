@@ -48,6 +48,24 @@ pub enum NetError {
         /// What is wrong.
         reason: String,
     },
+    /// A client configured with values that can never work (a batch size of 0, an empty
+    /// queue, ...), or whose background thread could not be started.
+    #[error("invalid {client} config: {reason}")]
+    ClientConfig {
+        /// Which client (`sample client`).
+        client: &'static str,
+        /// What is wrong, naming the field.
+        reason: String,
+    },
+    /// A client stopped for good after an error that retrying cannot fix (wrong table, wrong
+    /// token, incompatible dims, ...); every later call returns this again.
+    #[error("{client} stopped: {reason}")]
+    Stopped {
+        /// Which client (`sample client`).
+        client: &'static str,
+        /// The error that stopped it.
+        reason: String,
+    },
 }
 
 impl NetError {
@@ -148,7 +166,7 @@ impl GrpcEndpoint {
     /// HTTP/2 flow-control window of each stream on connections this endpoint dials: how many
     /// bytes a server may send on one stream before this side has read them [default: the
     /// transport's, 2 MiB]. A small window bounds how much a server can push ahead of a slow
-    /// reader (see `GrpcSource`, which sizes it to its prefetch).
+    /// reader (see `sample::SampleClient`, which sizes it to its prefetch).
     pub fn with_stream_window(mut self, bytes: u32) -> Self {
         self.stream_window = Some(bytes);
         self

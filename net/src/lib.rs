@@ -6,6 +6,7 @@
 //!     ▲                                                                                   │
 //!     └───────────────────── weights::subscribe / follow (gRPC stream) ◄──────────────────┘
 //!   actor ──stats::report──► supervisor (stats::serve_collector)
+//!   (insert: ShmInsertClient / InsertClient; sample: SampleClient)
 //! ```
 //!
 //! - [`endpoint`]: where a service is and how to reach it (URI, TLS CA, bearer token), the
@@ -13,6 +14,10 @@
 //! - [`serve`]: the server side of the same rules — TLS files, bearer-token check, and
 //!   [`serve::serve_secured`], the one way every gRPC service of the cluster is served;
 //! - [`shm`]: the shared-memory ingest's settings, wire types and the actors' [`shm::ShmWriter`];
+//! - [`insert`]: the actors' exactly-once delivery of transition batches — [`insert::InsertClient`]
+//!   (gRPC `Insert`) and [`insert::ShmInsertClient`] (over the writer);
+//! - [`sample`]: the learner's prefetching `Sample` client with asynchronous priority updates,
+//!   [`sample::SampleClient`];
 //! - [`weights`]: the checked weights-stream client and a reconnecting follower;
 //! - [`stats`]: episode statistics, reported by actors and collected by the supervisor;
 //! - [`logging`]: every process's log set-up with its identity on every line;
@@ -21,8 +26,10 @@
 //! - [`signals`]: the SIGINT/SIGTERM every service stops on.
 
 pub mod endpoint;
+pub mod insert;
 pub mod logging;
 pub mod metrics;
+pub mod sample;
 pub mod serve;
 pub mod shm;
 pub mod stats;

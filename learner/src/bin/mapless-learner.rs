@@ -23,7 +23,7 @@ use clap::{Parser, Subcommand};
 use mapless_learner::algo::{Agent, bench_updates};
 use mapless_learner::config::{AlgorithmKind, LearnerConfig, LearnerEvent, LearnerServiceConfig};
 use mapless_learner::driver::Driver;
-use mapless_learner::source::{GrpcEndpoint, GrpcSource, GrpcSourceConfig};
+use mapless_learner::source::{GrpcEndpoint, GrpcSource, SampleConfig};
 use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve};
 use mapless_learner::{Device, TorchThreads, checkpoint, device};
 use mapless_net::metrics::{self, bench_report};
@@ -179,7 +179,7 @@ fn run(config_path: &Path) -> Result<()> {
     }
 
     let endpoint: GrpcEndpoint = cfg.replay_security.endpoint(&cfg.replay)?;
-    let mut source_cfg = GrpcSourceConfig::new(endpoint, cfg.learner.batch_size as u32);
+    let mut source_cfg = SampleConfig::new(endpoint, cfg.learner.batch_size as u32);
     source_cfg.expected_dims = Some((cfg.obs_dim, cfg.act_dim));
     let source = Box::new(GrpcSource::start(source_cfg)?);
     let publisher = WeightsPublisher::new();
