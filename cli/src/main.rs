@@ -4,6 +4,8 @@
 //!   mapless maps list                      built-in maps and what they hold
 //!   mapless maps show env2 --out env2.png  a map as a picture
 //!   mapless maps rasterize env2 --out DIR  a map as a ROS map_server map (YAML + PGM)
+//!   mapless worlds generate --family cave --seed 7 --out DIR   a generated world (ROS map + picture)
+//!   mapless worlds show --family rooms --out sheet.png         a contact sheet of a family
 //!   mapless rollout --map env1 --out DIR   one simulated episode: trajectory picture + JSON
 //!   mapless bench sim [--json]             simulator throughput (vehicle-steps/s)
 //!   mapless train --preset env1-sac        a local actor–learner cluster, supervised
@@ -31,6 +33,7 @@ mod protocol;
 mod reproduce;
 mod signals;
 mod train;
+mod worlds;
 
 #[derive(Parser)]
 #[command(name = "mapless", version, about = "Map-free exploration by deep RL: simulator, training cluster, tools")]
@@ -48,6 +51,12 @@ enum Cmd {
     Maps {
         #[command(subcommand)]
         cmd: MapsCmd,
+    },
+    /// Procedural worlds: five seeded families (rooms, cave, hall, forest, field), as ROS maps
+    /// and pictures; name one anywhere a map is named as gen:FAMILY:SEED.
+    Worlds {
+        #[command(subcommand)]
+        cmd: worlds::WorldsCmd,
     },
     /// Drive one simulated episode and draw it.
     Rollout(RolloutArgs),
@@ -268,6 +277,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Maps { cmd: MapsCmd::Show { map, out, px_per_m } } => maps_show(&map, &out, px_per_m),
         Cmd::Maps { cmd: MapsCmd::Stats { map, grid, headings, json } } => maps_stats(&map, grid, headings, json),
         Cmd::Maps { cmd: MapsCmd::Rasterize { map, resolution, out } } => maps_rasterize(&map, resolution, &out),
+        Cmd::Worlds { cmd } => worlds::run(cmd),
         Cmd::Rollout(a) => rollout(a),
         Cmd::Train(a) => train::train(&a, log_json),
         Cmd::Eval(a) => eval_cmd(&a),
@@ -383,18 +393,10 @@ fn maps_show(map: &str, out: &Path, px_per_m: Option<f32>) -> Result<()> {
     Ok(())
 }
 
-fn maps_rasterize(map: &str, resolution: f64, out: &PathBuf) -> Result<()> {
+fn maps_rasterize(map: &str, resolution: f64, out: &Path) -> Result<()> {
     let m = Map::resolve(map)?;
-    let (w, h, px) = m.rasterize(resolution)?;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let mut pgm = format!("P5\n# mapless maps rasterize {map}\n{w} {h}\n255\n").into_bytes();
-    pgm.extend_from_slice(&px);
-    let pgm_path = out.join(format!("{}.pgm", m.name));
-    std::fs::write(&pgm_path, pgm).with_context(|| format!("writing {}", pgm_path.display()))?;
-    let yaml = format!("image: {}.pgm\nresolution: {resolution}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: trinary\n", m.name, m.bounds.min_x, m.bounds.min_y);
-    let yaml_path = out.join(format!("{}.yaml", m.name));
-    std::fs::write(&yaml_path, yaml).with_context(|| format!("writing {}", yaml_path.display()))?;
-    println!("wrote {} ({w}x{h} px at {resolution} m) and {}", pgm_path.display(), yaml_path.display());
+    let yaml_path = m.write_ros(out, resolution)?;
+    println!("wrote {} and {} ({resolution} m per pixel)", yaml_path.with_extension("pgm").display(), yaml_path.display());
     Ok(())
 }
 

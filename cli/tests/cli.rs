@@ -125,6 +125,30 @@ fn rasterized_map_reloads_as_a_ros_map_with_the_same_obstacles() {
 }
 
 #[test]
+fn worlds_generate_writes_a_ros_map_a_picture_and_the_vector_form_and_show_draws_a_sheet() {
+    let d = tmp("worlds");
+    let o = mapless(&["worlds", "generate", "--family", "field", "--seed", "7", "--out", d.to_str().unwrap(), "--resolution", "0.1"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in ["field-7.yaml", "field-7.pgm", "field-7.png", "field-7.vector.yaml"] {
+        assert!(d.join(f).is_file(), "{f} missing");
+    }
+    // The ROS map and the vector form load; the vector form is the world `gen:field:7` names.
+    let ros = mapless_sim::Map::load(&d.join("field-7.yaml")).unwrap();
+    let vector = mapless_sim::Map::load(&d.join("field-7.vector.yaml")).unwrap();
+    let named = mapless_sim::Map::resolve("gen:field:7").unwrap();
+    assert_eq!(ros.bounds, named.bounds);
+    assert_eq!(vector.rasterize(0.1).unwrap(), named.rasterize(0.1).unwrap());
+    assert!(!vector.shaded.is_empty(), "a field's canopies are in its vector form");
+    // A contact sheet of three caves; an unknown family is an error naming the families.
+    let sheet = d.join("caves.png");
+    let o = mapless(&["worlds", "show", "--family", "cave", "--seeds", "0..3", "--out", sheet.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(std::fs::metadata(&sheet).unwrap().len() > 10_000);
+    let o = mapless(&["worlds", "show", "--family", "lava", "--out", sheet.to_str().unwrap()]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("rooms, cave, hall, forest, field"));
+}
+
+#[test]
 fn maps_stats_and_analyze_eqs_print_json() {
     // env1's largest minimum range keeps a parked car below the paper's 0.32 per step.
     let o = mapless(&["maps", "stats", "env1", "--grid", "0.5", "--headings", "12", "--json"]);

@@ -6,6 +6,7 @@
 //!        │
 //!        ▼
 //!   canvas: Canvas (map + episode pictures)      curves: training_curves_png
+//!   sheet: contact_sheet_png (many canvases on a grid)
 //!        │  plotters: layout, axes in metres / episodes, tick labels, titles, legends
 //!        │  tiny-skia: anti-aliased map shapes, paths, data lines (Picture::paint)
 //!        ▼
@@ -21,8 +22,10 @@ pub mod curves;
 mod error;
 mod font;
 mod picture;
+mod sheet;
 
 pub use canvas::{Canvas, default_px_per_m};
 pub use curves::{CurvePoint, CurveStyle, training_curves_png};
 pub use error::{PlotError, Result};
 pub use font::FONT_FAMILY;
+pub use sheet::contact_sheet_png;

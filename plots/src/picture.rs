@@ -69,6 +69,14 @@ impl Picture {
         self.rgb.resize(self.width as usize * self.height as usize * 3, 255);
     }
 
+    /// Sets pixel (x, y) (ignored outside the picture).
+    pub(crate) fn set_rgb(&mut self, x: u32, y: u32, c: [u8; 3]) {
+        if x < self.width && y < self.height {
+            let i = (y as usize * self.width as usize + x as usize) * 3;
+            self.rgb[i..i + 3].copy_from_slice(&c);
+        }
+    }
+
     /// RGB of pixel (x, y).
     pub(crate) fn rgb(&self, x: u32, y: u32) -> Option<[u8; 3]> {
         (x < self.width && y < self.height).then(|| {

@@ -8,7 +8,7 @@ pub enum SimError {
     #[error("map file {path}: {problem}")]
     MapFile { path: PathBuf, problem: String },
     /// A built-in map name that does not exist.
-    #[error("unknown map `{0}` (built-in maps: env1, env2, env3, outdoor20; or give a path to a .yaml map)")]
+    #[error("unknown map `{0}` (built-in maps: env1, env2, env3, outdoor20; a generated world gen:FAMILY:SEED; or a path to a .yaml map)")]
     UnknownMap(String),
     /// A configuration value outside its domain.
     #[error("invalid config: {0}")]

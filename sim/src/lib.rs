@@ -7,6 +7,7 @@
 //!                                      Env (one vehicle) / VecEnv (many, one call)
 //!                                         bicycle model · range sensor · reward · EQS/EES
 //!   paper (the paper's numbers) · stats (order-W moving average)
+//!   worlds (seeded procedural worlds in five families, `gen:FAMILY:SEED`) ──► Map
 //! ```
 //!
 //! Pictures of maps, episodes and training curves live in `mapless-plots`, which reads these
@@ -31,6 +32,7 @@ pub mod scene;
 pub mod sensor;
 pub mod stats;
 pub mod vehicle;
+pub mod worlds;
 
 pub use config::{EnvConfig, EpisodeConfig, ExplorationConfig, InnerSum, RaycastMethod, RewardConfig, SensorConfig, VehicleConfig};
 pub use env::{Env, EpisodeSummary, StepOutcome, VecEnv, VecStep, World};

@@ -158,8 +158,13 @@ impl Map {
         Self::from_vector_yaml(src, Path::new(&format!("<built-in {name}>")))
     }
 
-    /// A built-in map name, or a path to a vector or ROS map YAML file.
+    /// A built-in map name, a generated world (`gen:FAMILY:SEED`, see [`crate::worlds`]), or a
+    /// path to a vector or ROS map YAML file.
     pub fn resolve(name_or_path: &str) -> Result<Map> {
+        if let Some(spec) = crate::worlds::parse_spec(name_or_path) {
+            let (family, seed) = spec?;
+            return crate::worlds::generate(family, seed);
+        }
         if builtin_source(name_or_path).is_some() {
             return Self::builtin(name_or_path);
         }
@@ -316,8 +321,8 @@ impl Map {
 
     /// Rasterises the map as a ROS map_server occupancy image at `resolution_m` per pixel:
     /// returns (width, height, pixels row 0 = top, 0 = occupied, 254 = free). A pixel is occupied
-    /// if its centre is not free or lies within half a pixel diagonal of an obstacle surface, so
-    /// thin walls stay closed in the raster.
+    /// if its centre is not free or (vector maps) lies within half a pixel diagonal of an
+    /// obstacle surface, so thin walls stay closed in the raster.
     pub fn rasterize(&self, resolution_m: f64) -> Result<(usize, usize, Vec<u8>)> {
         if !(resolution_m.is_finite() && resolution_m > 0.0) {
             return Err(SimError::InvalidConfig(format!("resolution must be > 0, got {resolution_m}")));
@@ -334,7 +339,10 @@ impl Map {
             let y = self.bounds.max_y - (row as f64 + 0.5) * resolution_m;
             for col in 0..w {
                 let x = self.bounds.min_x + (col as f64 + 0.5) * resolution_m;
-                if !self.is_free(x, y) || scene.distance_to_nearest(x, y) <= half_diag {
+                // A grid map's walls are cell edges, never thinner than a cell: its raster is its
+                // cells, so a ROS map written from a raster loads back to the same raster.
+                let thin_wall_near = self.grid.is_none() && scene.distance_to_nearest(x, y) <= half_diag;
+                if !self.is_free(x, y) || thin_wall_near {
                     px[row * w + col] = 0;
                 }
             }
@@ -394,22 +402,59 @@ impl Map {
             return Err(map_err(path, "the image has no free cell".into()));
         }
         let res = meta.resolution;
-        let (ox, oy) = (meta.origin[0], meta.origin[1]);
-        let bounds = Aabb { min_x: ox, min_y: oy, max_x: ox + w as f64 * res, max_y: oy + h as f64 * res };
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "ros-map".into());
-        let grid = OccupancyGrid { width: w, height: h, resolution_m: res, origin: [ox, oy], free };
+        let grid = OccupancyGrid { width: w, height: h, resolution_m: res, origin: [meta.origin[0], meta.origin[1]], free };
+        let description = format!("ROS map_server map {} ({w}x{h} cells at {res} m)", path.display());
+        Ok(Self::from_grid(name, description, grid))
+    }
+
+    /// A map whose obstacles are the blocked cells of `grid` (outside the grid is blocked too):
+    /// what a ROS map loads into, and what generated caves are.
+    pub fn from_grid(name: String, description: String, grid: OccupancyGrid) -> Map {
+        let (w, h, res) = (grid.width as f64, grid.height as f64, grid.resolution_m);
+        let [ox, oy] = grid.origin;
+        let bounds = Aabb { min_x: ox, min_y: oy, max_x: ox + w * res, max_y: oy + h * res };
         let segments = grid_boundary_segments(&grid).into_iter().map(|s| (s, f64::INFINITY)).collect();
-        Ok(Map {
-            name,
-            description: format!("ROS map_server map {} ({w}x{h} cells at {res} m)", path.display()),
-            bounds,
-            obstacles: Vec::new(),
-            boundary_walls: false,
-            shaded: Vec::new(),
-            grid: Some(grid),
-            segments,
-            circles: Vec::new(),
-        })
+        Map { name, description, bounds, obstacles: Vec::new(), boundary_walls: false, shaded: Vec::new(), grid: Some(grid), segments, circles: Vec::new() }
+    }
+
+    /// A vector map's YAML document (the inverse of [`Map::from_vector_yaml`]); `None` for a
+    /// grid map, which has no vector form.
+    pub fn to_vector_yaml(&self) -> Option<String> {
+        if self.grid.is_some() {
+            return None;
+        }
+        let b = self.bounds;
+        let file = VectorMapFile {
+            format: VECTOR_FORMAT.into(),
+            name: self.name.clone(),
+            description: self.description.clone(),
+            bounds: Bounds { min: [b.min_x, b.min_y], max: [b.max_x, b.max_y] },
+            boundary_walls: self.boundary_walls,
+            obstacles: self.obstacles.clone(),
+            shaded: self.shaded.clone(),
+        };
+        serde_yaml::to_string(&file).ok()
+    }
+
+    /// Writes the map as a ROS map_server map, `dir/NAME.pgm` (P5, 0 occupied, 254 free) and
+    /// `dir/NAME.yaml` (trinary, the thresholds map_server's defaults), at `resolution_m` metres
+    /// per pixel; creates `dir`. Returns the YAML's path. Loading it back gives the same raster.
+    pub fn write_ros(&self, dir: &Path, resolution_m: f64) -> Result<PathBuf> {
+        let (w, h, px) = self.rasterize(resolution_m)?;
+        let io = |p: &Path, e: std::io::Error| map_err(p, format!("cannot write: {e}"));
+        std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+        let mut pgm = format!("P5\n# mapless: {}\n{w} {h}\n255\n", self.name).into_bytes();
+        pgm.extend_from_slice(&px);
+        let pgm_path = dir.join(format!("{}.pgm", self.name));
+        std::fs::write(&pgm_path, pgm).map_err(|e| io(&pgm_path, e))?;
+        let yaml = format!(
+            "image: {}.pgm\nresolution: {resolution_m}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: trinary\n",
+            self.name, self.bounds.min_x, self.bounds.min_y
+        );
+        let yaml_path = dir.join(format!("{}.yaml", self.name));
+        std::fs::write(&yaml_path, yaml).map_err(|e| io(&yaml_path, e))?;
+        Ok(yaml_path)
     }
 }
 

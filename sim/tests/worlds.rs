@@ -1,0 +1,117 @@
+//! Procedural worlds (`mapless_sim::worlds`): the same seed gives the same world, every world
+//! has one connected drivable space of enough area with room for the car, the ROS export loads
+//! back the same, and training and held-out seeds never meet.
+
+use std::sync::Arc;
+
+use mapless_sim::worlds::{DRIVABLE_CELL_M, DRIVE_CLEARANCE_M, DrivableSpace, Family, HELD_OUT_FIRST_SEED, SIZE_RANGE_M, Split, generate};
+use mapless_sim::{Env, EnvConfig, Map, World};
+
+/// Seeds per family in these tests (generation is checked on more in `generation_never_gives_up`).
+const SEEDS: u64 = 4;
+
+fn fingerprint(m: &Map) -> (usize, usize, Vec<u8>) {
+    m.rasterize(0.1).unwrap()
+}
+
+#[test]
+fn a_seed_names_one_world_and_different_seeds_differ() {
+    for f in Family::ALL {
+        let (a, b) = (generate(f, 3).unwrap(), generate(f, 3).unwrap());
+        assert_eq!(a.name, format!("{f}-3"));
+        assert_eq!(a.description, b.description);
+        assert_eq!(fingerprint(&a), fingerprint(&b), "{f}: seed 3 twice");
+        assert_eq!(a.to_vector_yaml(), b.to_vector_yaml());
+        let c = generate(f, 4).unwrap();
+        assert_ne!(fingerprint(&a), fingerprint(&c), "{f}: seeds 3 and 4 gave the same world");
+    }
+    // The families draw from separate streams: rooms-5 and hall-5 are not one layout.
+    assert_ne!(generate(Family::Rooms, 5).unwrap().bounds.width(), 0.0);
+    // And `gen:FAMILY:SEED` resolves to the same world.
+    let r = Map::resolve("gen:forest:9").unwrap();
+    assert_eq!(fingerprint(&r), fingerprint(&generate(Family::Forest, 9).unwrap()));
+    assert!(Map::resolve("gen:swamp:1").unwrap_err().to_string().contains("unknown world family"));
+}
+
+#[test]
+fn every_world_has_one_connected_drivable_space_and_every_start_lies_in_it() {
+    for f in Family::ALL {
+        let (lo, hi) = f.size_range_m();
+        assert!(lo >= SIZE_RANGE_M.0 && hi <= SIZE_RANGE_M.1);
+        for seed in 0..SEEDS {
+            let m = generate(f, seed).unwrap();
+            let side = m.bounds.width();
+            assert!((lo..=hi).contains(&side) && (m.bounds.height() - side).abs() < 1e-9, "{}: {side} m", m.name);
+            let space = DrivableSpace::of(&m, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
+            assert!(space.is_connected(), "{}: {} pieces {:?}", m.name, space.piece_sizes.len(), &space.piece_sizes[..space.piece_sizes.len().min(5)]);
+            assert!(space.area_m2() >= 0.25 * side * side, "{}: {:.0} m² drivable of {:.0}", m.name, space.area_m2(), side * side);
+            // Random starts (the trainer's) all land in that one piece, and the car can drive
+            // off: a straight 1 m at half speed from most of them does not collide.
+            let world = World::new(m, EnvConfig::default()).unwrap();
+            let mut env = Env::new(Arc::clone(&world), seed);
+            let mut obs = vec![0.0; world.obs_dim()];
+            let mut moved = 0;
+            for _ in 0..20 {
+                env.reset(&mut obs).unwrap();
+                let p = env.pose();
+                assert_eq!(space.piece_at(p.x_m, p.y_m), Some(0), "{}: start {p:?} outside the drivable piece", world.map.name);
+                let mut ok = true;
+                for _ in 0..20 {
+                    ok &= !env.step([0.5, 0.0], &mut obs).unwrap().terminal;
+                }
+                moved += usize::from(ok);
+            }
+            assert!(moved >= 10, "{}: only {moved} of 20 starts could drive 1 m straight", world.map.name);
+        }
+    }
+}
+
+#[test]
+fn a_closed_off_pocket_is_never_left_in_a_world() {
+    // The check itself: a box split by a wall into two rooms with no door is two pieces.
+    let doc = "format: mapless-vector-map/v1\nname: two\nbounds: { min: [0, 0], max: [20, 10] }\nboundary_walls: true\nobstacles:\n  - wall: { from: [10, 0], to: [10, 10] }\n";
+    let m = Map::from_vector_yaml(doc, "two".as_ref()).unwrap();
+    assert_eq!(DrivableSpace::of(&m, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M).piece_sizes.len(), 2);
+}
+
+#[test]
+fn the_ros_export_loads_back_identical() {
+    let dir = tempfile::tempdir().unwrap();
+    for f in Family::ALL {
+        let m = generate(f, 1).unwrap();
+        let res = 0.1;
+        let yaml = m.write_ros(dir.path(), res).unwrap();
+        let back = Map::load(&yaml).unwrap();
+        assert_eq!(back.name, m.name);
+        assert!((back.bounds.min_x - m.bounds.min_x).abs() < 1e-9 && (back.bounds.max_y - m.bounds.max_y).abs() < 1e-9, "{}: bounds", m.name);
+        // The same raster, pixel for pixel, and the same free space at every pixel centre.
+        assert_eq!(back.rasterize(res).unwrap(), m.rasterize(res).unwrap(), "{}: raster differs after reload", m.name);
+        // A vector world's own YAML reloads to the same world too (shaded regions included).
+        if let Some(text) = m.to_vector_yaml() {
+            let v = Map::from_vector_yaml(&text, "v".as_ref()).unwrap();
+            assert_eq!(fingerprint(&v), fingerprint(&m));
+            assert_eq!(v.shaded.len(), m.shaded.len());
+        }
+    }
+    // Fields carry shade (eq. (2)'s regions); the other families none.
+    assert!(!generate(Family::Field, 2).unwrap().shaded.is_empty());
+}
+
+#[test]
+fn generation_never_gives_up() {
+    for f in Family::ALL {
+        for seed in [SEEDS, 10, 77, HELD_OUT_FIRST_SEED, HELD_OUT_FIRST_SEED + 1, u64::MAX] {
+            generate(f, seed).unwrap_or_else(|e| panic!("{f} {seed}: {e}"));
+        }
+    }
+}
+
+#[test]
+fn training_and_held_out_seeds_never_meet() {
+    let train: Vec<u64> = (0..1000).map(|i| Split::Train.seed(i).unwrap()).collect();
+    let held: Vec<u64> = (0..1000).map(|i| Split::HeldOut.seed(i).unwrap()).collect();
+    assert!(train.iter().all(|s| Split::of(*s) == Split::Train));
+    assert!(held.iter().all(|s| Split::of(*s) == Split::HeldOut));
+    assert!(train.iter().max() < held.iter().min());
+    assert!(Split::Train.seed(HELD_OUT_FIRST_SEED).is_err(), "a training index may not reach the held-out seeds");
+}
