@@ -21,7 +21,8 @@ use mapless_net::shm::ShmConfig;
 use mapless_net::{ClientSecurity, metrics};
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, WeightsSnapshot};
 use mapless_proto::{Transition, TransitionBatchBuilder};
-use mapless_sim::{EnvConfig, Map, VecEnv, VecStep, World};
+use mapless_sim::worlds::{DEFAULT_WORLDS_PER_FAMILY, Split, WorldPool};
+use mapless_sim::{EnvConfig, VecEnv, VecStep};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
@@ -67,8 +68,12 @@ impl Default for ExplorationSettings {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ActorConfig {
-    /// Built-in map name or path to a map YAML.
+    /// Built-in map name, path to a map YAML, `gen:FAMILY:SEED`, or several joined by `+`
+    /// (`gen:FAMILY` alone: that family's training worlds).
     pub map: String,
+    /// Training worlds per family named in `map` (seeds 0..N).
+    #[serde(default = "default_worlds_per_family")]
+    pub worlds_per_family: usize,
     /// Simulator settings (vehicle, sensor, reward, step limit, EQS grid).
     pub env: EnvConfig,
     /// Vehicles simulated by this process.
@@ -97,6 +102,10 @@ pub struct ActorConfig {
     /// Prometheus `/metrics` address (loopback; port 0 picks one, logged at start); none: off.
     #[serde(default)]
     pub metrics_listen: Option<std::net::SocketAddr>,
+}
+
+fn default_worlds_per_family() -> usize {
+    DEFAULT_WORLDS_PER_FAMILY
 }
 
 fn default_in_flight() -> usize {
@@ -171,11 +180,16 @@ fn unix_ms() -> u64 {
 /// taken; then sends what is left and waits (up to 10 s) for the acknowledgements.
 pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool>, max_vehicle_steps: Option<u64>) -> anyhow::Result<ActorReport> {
     cfg.validate().map_err(|e| anyhow::anyhow!("actor config: {e}"))?;
-    let map = Map::resolve(&cfg.map)?;
+    // One map, or a list of maps and families: every episode draws its world from the pool
+    // (the families' training worlds), built once here.
+    let pool = WorldPool::build(&cfg.map, cfg.worlds_per_family, Split::Train, &cfg.env)?;
+    if pool.len() > 1 {
+        tracing::info!(worlds = pool.len(), map = %cfg.map, "training worlds built; each episode draws one");
+    }
     let map_name = cfg.map.clone();
-    let world = World::new(map, cfg.env.clone())?;
+    let single_world = pool.len() == 1;
     let seed = cfg.seed.wrapping_add((index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let mut envs = VecEnv::new(world, cfg.vehicles, seed)?;
+    let mut envs = VecEnv::with_pool(Arc::new(pool), cfg.vehicles, seed)?;
     let (n, d) = (envs.len(), envs.obs_dim());
     let mut rng = Pcg64::seed_from_u64(seed ^ 0xA5A5_5A5A);
 
@@ -302,7 +316,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
                 ees: s.ees,
                 distance_m: s.distance_m,
                 shaded_time_s: s.shaded_time_s,
-                map: map_name.clone(),
+                map: if single_world { map_name.clone() } else { s.map.clone() },
                 evaluation: false,
                 finished_unix_ms: unix_ms(),
             };

@@ -26,6 +26,7 @@ use crate::map::Map;
 use crate::scene::{Footprint, Scene};
 use crate::sensor::RangeSensor;
 use crate::vehicle::Pose;
+use crate::worlds::WorldPool;
 
 /// Grid cell size of the scene index [measured with `mapless bench sim` in env2: 2 m beat
 /// 0.5 m and 1 m for 7- and 100-beam scans; a 12 m beam crosses at most ~12 cells].
@@ -83,6 +84,8 @@ impl StepOutcome {
 /// What an episode achieved, reported when it ends.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct EpisodeSummary {
+    /// The world it ran in (its map's name).
+    pub map: String,
     pub episode_id: u64,
     #[serde(rename = "return")]
     pub return_: f64,
@@ -149,6 +152,19 @@ impl Env {
 
     pub fn world(&self) -> &Arc<World> {
         &self.world
+    }
+
+    /// Moves the vehicle to another world for its next episode (call [`Env::reset`] next). The
+    /// world must give observations of the same length (the same sensor).
+    pub fn set_world(&mut self, world: Arc<World>) -> Result<()> {
+        if world.obs_dim() != self.world.obs_dim() {
+            return Err(SimError::InvalidConfig(format!("world `{}` gives {} observation values, `{}` gave {}", world.map.name, world.obs_dim(), self.world.map.name, self.world.obs_dim())));
+        }
+        if world.map.bounds != self.world.map.bounds || world.cfg.exploration != self.world.cfg.exploration {
+            self.tracker = ExplorationTracker::new(world.map.bounds, &world.cfg.exploration);
+        }
+        self.world = world;
+        Ok(())
     }
     pub fn pose(&self) -> Pose {
         self.pose
@@ -254,6 +270,7 @@ impl Env {
     /// Statistics of the episode so far.
     pub fn summary(&self, outcome: Option<StepOutcome>) -> EpisodeSummary {
         EpisodeSummary {
+            map: self.world.map.name.clone(),
             episode_id: self.episode_id,
             return_: self.return_,
             steps: self.steps,
@@ -293,23 +310,48 @@ pub struct VecStep {
     pub finished: Vec<(usize, EpisodeSummary)>,
 }
 
-/// Many vehicles in one world, stepped with one call; episodes reset automatically.
+/// Many vehicles in one world (or a pool of worlds, one drawn per episode), stepped with one
+/// call; episodes reset automatically.
 pub struct VecEnv {
     envs: Vec<Env>,
     obs: Vec<f32>,
     obs_dim: usize,
+    /// Where each episode's world is drawn from (one world: never redrawn).
+    pool: Arc<WorldPool>,
+    /// The stream that picks worlds (separate from the vehicles', so one world gives the same
+    /// episodes as before pools existed).
+    pick: Pcg64Mcg,
 }
 
 impl VecEnv {
     /// `n` vehicles; vehicle i draws from stream (seed, i). All are reset.
     pub fn new(world: Arc<World>, n: usize, seed: u64) -> Result<Self> {
-        let d = world.obs_dim();
-        let mut envs: Vec<Env> = (0..n).map(|i| Env::new(Arc::clone(&world), splitmix64(seed) ^ (i as u64).wrapping_mul(0xA24B_AED4_963E_E407))).collect();
+        Self::with_pool(Arc::new(WorldPool::single(world)), n, seed)
+    }
+
+    /// `n` vehicles, each episode in a world drawn uniformly from `pool`.
+    pub fn with_pool(pool: Arc<WorldPool>, n: usize, seed: u64) -> Result<Self> {
+        let first = pool.worlds().first().ok_or_else(|| SimError::InvalidConfig("an empty world pool".into()))?;
+        let d = first.obs_dim();
+        if let Some(w) = pool.worlds().iter().find(|w| w.obs_dim() != d) {
+            return Err(SimError::InvalidConfig(format!("world `{}` gives {} observation values, `{}` gives {d}", w.map.name, w.obs_dim(), first.map.name)));
+        }
+        let mut pick = Pcg64Mcg::seed_from_u64(splitmix64(seed ^ 0x5EED_0F30_17D5));
+        let mut envs = Vec::with_capacity(n);
+        for i in 0..n {
+            let w = if pool.len() > 1 { pool.get(pick.random_range(0..pool.len())) } else { first };
+            envs.push(Env::new(Arc::clone(w), splitmix64(seed) ^ (i as u64).wrapping_mul(0xA24B_AED4_963E_E407)));
+        }
         let mut obs = vec![0.0; n * d];
         for (e, o) in envs.iter_mut().zip(obs.chunks_exact_mut(d)) {
             e.reset(o)?;
         }
-        Ok(VecEnv { envs, obs, obs_dim: d })
+        Ok(VecEnv { envs, obs, obs_dim: d, pool, pick })
+    }
+
+    /// The worlds episodes are drawn from.
+    pub fn pool(&self) -> &Arc<WorldPool> {
+        &self.pool
     }
 
     pub fn len(&self) -> usize {
@@ -357,6 +399,9 @@ impl VecEnv {
             let cur = &mut self.obs[i * d..(i + 1) * d];
             if o.done() {
                 out.finished.push((i, env.summary(Some(o))));
+                if self.pool.len() > 1 {
+                    env.set_world(Arc::clone(self.pool.get(self.pick.random_range(0..self.pool.len()))))?;
+                }
                 env.reset(cur)?;
             } else {
                 cur.copy_from_slice(next);

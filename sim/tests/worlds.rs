@@ -115,3 +115,36 @@ fn training_and_held_out_seeds_never_meet() {
     assert!(train.iter().max() < held.iter().min());
     assert!(Split::Train.seed(HELD_OUT_FIRST_SEED).is_err(), "a training index may not reach the held-out seeds");
 }
+
+#[test]
+fn vehicles_draw_a_world_per_episode_from_a_pool_deterministically() {
+    use mapless_sim::worlds::WorldPool;
+    use mapless_sim::{VecEnv, VecStep};
+    let mut cfg = EnvConfig::default();
+    cfg.episode.max_steps = 60;
+    let pool = Arc::new(WorldPool::build("env1+gen:forest+gen:rooms", 2, Split::Train, &cfg).unwrap());
+    let names: Vec<String> = pool.worlds().iter().map(|w| w.map.name.clone()).collect();
+    assert_eq!(names, ["env1", "forest-0", "forest-1", "rooms-0", "rooms-1"]);
+    let run = || {
+        let mut envs = VecEnv::with_pool(Arc::clone(&pool), 3, 11).unwrap();
+        let mut out = VecStep::default();
+        let mut finished = Vec::new();
+        for t in 0..1200 {
+            let a: Vec<f32> = (0..6).map(|k| if k % 2 == 0 { 0.3 } else { ((t / 40) % 3) as f32 * 0.4 - 0.4 }).collect();
+            envs.step(&a, &mut out).unwrap();
+            finished.extend(out.finished.iter().map(|(i, s)| (*i, s.map.clone(), s.steps)));
+        }
+        finished
+    };
+    let (a, b) = (run(), run());
+    assert_eq!(a, b, "the same seed draws the same worlds and episodes");
+    let seen: std::collections::BTreeSet<&str> = a.iter().map(|f| f.1.as_str()).collect();
+    assert!(seen.len() >= 4, "episodes ran in {seen:?}");
+    assert!(seen.iter().all(|s| names.iter().any(|n| n == s)));
+    // A world of another sensor cannot join: its observations would not fit the policy.
+    let mut wide = cfg.clone();
+    wide.sensor.beams = 9;
+    let mut env = Env::new(pool.get(0).clone(), 1);
+    let other = World::new(Map::builtin("env3").unwrap(), wide).unwrap();
+    assert!(env.set_world(other).unwrap_err().to_string().contains("observation values"));
+}

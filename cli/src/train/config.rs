@@ -21,6 +21,7 @@ pub const PRESETS: &[(&str, &str)] = &[
     ("env2-td3", include_str!("../../../presets/env2-td3.yaml")),
     ("env2-ddpg", include_str!("../../../presets/env2-ddpg.yaml")),
     ("outdoor20-sac", include_str!("../../../presets/outdoor20-sac.yaml")),
+    ("explore-sac", include_str!("../../../presets/explore-sac.yaml")),
 ];
 
 /// When a run stops by itself (whichever comes first). Moving averages are over the last
@@ -145,8 +146,15 @@ pub struct TrainConfig {
     pub name: String,
     #[serde(default)]
     pub description: String,
-    /// Built-in map name or path to a map YAML.
+    /// Built-in map name, path to a map YAML, a generated world `gen:FAMILY:SEED`, or several
+    /// joined by `+` (`env1+gen:rooms+gen:cave`; `gen:FAMILY` alone: that family's training
+    /// worlds): every episode then draws its world from the list, and evaluations use the
+    /// families' held-out worlds.
     pub map: String,
+    /// Training worlds per family named in `map` (seeds 0..N of the training split)
+    /// [ours: `mapless_sim::worlds::DEFAULT_WORLDS_PER_FAMILY`].
+    #[serde(default = "default_worlds_per_family")]
+    pub worlds_per_family: usize,
     /// Simulator settings (vehicle, sensor, reward, episode, EQS grid). The reward lives here
     /// only (`env.reward`); a document may name a reward preset with the shorthand `reward:`
     /// (`exploration`: eq. 1, `search_and_rescue`: eq. 2) and the step limit with
@@ -176,6 +184,10 @@ pub struct TrainConfig {
     pub threads: ThreadSettings,
     #[serde(default)]
     pub seed: u64,
+}
+
+fn default_worlds_per_family() -> usize {
+    mapless_sim::worlds::DEFAULT_WORLDS_PER_FAMILY
 }
 
 pub(crate) fn yes() -> bool {
@@ -232,7 +244,10 @@ impl TrainConfig {
         if self.stop.eval_episodes == 0 || !(self.stop.convergence_tolerance > 0.0) {
             bail!("stop.eval_episodes must be >= 1 and stop.convergence_tolerance > 0");
         }
-        mapless_sim::Map::resolve(&self.map).with_context(|| format!("map `{}`", self.map))?;
+        mapless_sim::worlds::WorldPool::check(&self.map).with_context(|| format!("map `{}`", self.map))?;
+        if self.worlds_per_family == 0 || self.worlds_per_family > mapless_sim::worlds::HELD_OUT_FIRST_SEED as usize {
+            bail!("worlds_per_family must be in 1..={}", mapless_sim::worlds::HELD_OUT_FIRST_SEED);
+        }
         Ok(self)
     }
 

@@ -25,11 +25,14 @@
 //! random start of an episode (which needs more clearance) then lies in that one piece.
 //!
 //! Training and held-out evaluation worlds are split by seed ([`Split`]): training draws seeds
-//! below [`HELD_OUT_FIRST_SEED`], held-out evaluation uses seeds from it upwards.
+//! below [`HELD_OUT_FIRST_SEED`], held-out evaluation uses seeds from it upwards. A run's map
+//! may be a list of maps and families (`env1+gen:rooms+gen:cave`, [`WorldPool`]): its vehicles
+//! draw a world per episode from the families' training worlds, its evaluations use held-out ones.
 
 mod cave;
 mod clutter;
 mod drivable;
+mod pool;
 mod rooms;
 
 use rand::{Rng, SeedableRng};
@@ -37,6 +40,7 @@ use rand_pcg::Pcg64Mcg;
 use serde::{Deserialize, Serialize};
 
 pub use drivable::DrivableSpace;
+pub use pool::{DEFAULT_WORLDS_PER_FAMILY, MapItem, WorldPool, parse_map_list};
 
 use crate::error::{Result, SimError};
 use crate::map::{Bounds, Map, Obstacle, Region, VECTOR_FORMAT, VectorMapFile};
