@@ -189,7 +189,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let map_name = cfg.map.clone();
     let single_world = pool.len() == 1;
     let seed = cfg.seed.wrapping_add((index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let mut envs = VecEnv::with_pool(Arc::new(pool), cfg.vehicles, seed)?;
+    let mut envs = VecEnv::with_worlds(pool.into_worlds(), cfg.vehicles, seed)?;
     let (n, d) = (envs.len(), envs.obs_dim());
     let mut rng = Pcg64::seed_from_u64(seed ^ 0xA5A5_5A5A);
 

@@ -9,8 +9,8 @@ use anyhow::{Context, Result, bail};
 use mapless_actor::{ActMode, Policy};
 use mapless_plots::{Canvas, default_px_per_m};
 use mapless_proto::weights_file::read_safetensors_file;
-use mapless_sim::worlds::{Family, MapItem, Split, generate, parse_map_list};
-use mapless_sim::{Env, EnvConfig, Map, World};
+use mapless_sim::worlds::{Family, MapItem, Split, generate, parse_map_list, resolve};
+use mapless_sim::{Env, EnvConfig, World};
 use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
@@ -81,7 +81,7 @@ impl EvalWorlds {
         let slots = parse_map_list(map)?
             .into_iter()
             .map(|i| match i {
-                MapItem::Map(name) => Map::resolve(&name).and_then(|m| World::new(m, env.clone())).map(Slot::Fixed),
+                MapItem::Map(name) => resolve(&name).and_then(|m| World::new(m, env.clone())).map(Slot::Fixed),
                 MapItem::Family(f) => Ok(Slot::Family(f)),
             })
             .collect::<Result<_, _>>()?;

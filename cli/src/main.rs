@@ -355,7 +355,7 @@ fn maps_stats(map: &str, grid: f64, headings: usize, json: bool) -> Result<()> {
     if !(grid > 0.0) || headings == 0 {
         bail!("--grid must be > 0 and --headings >= 1");
     }
-    let world = World::new(Map::resolve(map)?, EnvConfig::default())?;
+    let world = World::new(mapless_sim::worlds::resolve(map)?, EnvConfig::default())?;
     let b = mapless_sim::bounds::reward_bounds(&world, grid, headings);
     if json {
         println!("{}", serde_json::json!({ "map": world.map.name, "grid_m": grid, "headings": headings, "bounds": b }));
@@ -383,7 +383,7 @@ fn maps_list() -> Result<()> {
 }
 
 fn maps_show(map: &str, out: &Path, px_per_m: Option<f32>) -> Result<()> {
-    let m = Map::resolve(map)?;
+    let m = mapless_sim::worlds::resolve(map)?;
     let ppm = px_per_m.unwrap_or_else(|| default_px_per_m(&m));
     let title = format!("{} — {:.0} m × {:.0} m", m.name, m.bounds.width(), m.bounds.height());
     let mut c = Canvas::map(&m, ppm, &title)?;
@@ -394,7 +394,7 @@ fn maps_show(map: &str, out: &Path, px_per_m: Option<f32>) -> Result<()> {
 }
 
 fn maps_rasterize(map: &str, resolution: f64, out: &Path) -> Result<()> {
-    let m = Map::resolve(map)?;
+    let m = mapless_sim::worlds::resolve(map)?;
     let yaml_path = m.write_ros(out, resolution)?;
     println!("wrote {} and {} ({resolution} m per pixel)", yaml_path.with_extension("pgm").display(), yaml_path.display());
     Ok(())
@@ -413,7 +413,7 @@ fn episode_footer(s: &mapless_sim::EpisodeSummary, shaded_map: bool) -> String {
 }
 
 fn rollout(a: RolloutArgs) -> Result<()> {
-    let map = Map::resolve(&a.map)?;
+    let map = mapless_sim::worlds::resolve(&a.map)?;
     let mut cfg = EnvConfig { reward: RewardConfig::preset(&a.reward)?, ..EnvConfig::default() };
     cfg.episode.max_steps = a.steps;
     let world = World::new(map, cfg)?;

@@ -135,7 +135,7 @@ fn worlds_generate_writes_a_ros_map_a_picture_and_the_vector_form_and_show_draws
     // The ROS map and the vector form load; the vector form is the world `gen:field:7` names.
     let ros = mapless_sim::Map::load(&d.join("field-7.yaml")).unwrap();
     let vector = mapless_sim::Map::load(&d.join("field-7.vector.yaml")).unwrap();
-    let named = mapless_sim::Map::resolve("gen:field:7").unwrap();
+    let named = mapless_sim::worlds::resolve("gen:field:7").unwrap();
     assert_eq!(ros.bounds, named.bounds);
     assert_eq!(vector.rasterize(0.1).unwrap(), named.rasterize(0.1).unwrap());
     assert!(!vector.shaded.is_empty(), "a field's canopies are in its vector form");

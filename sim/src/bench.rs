@@ -11,7 +11,6 @@ use rand_pcg::Pcg64Mcg;
 use crate::config::{EnvConfig, RaycastMethod};
 use crate::env::{VecEnv, VecStep, World};
 use crate::error::Result;
-use crate::map::Map;
 
 /// A sensor set-up to measure: the paper's template and the two dense scans SPEC §1 names.
 #[derive(Clone, Copy, Debug)]
@@ -47,7 +46,7 @@ pub fn bench_env(map: &str, preset: ScanPreset, method: RaycastMethod, vehicles:
     cfg.sensor.beams = preset.beams;
     cfg.sensor.fov_rad = preset.fov_rad;
     cfg.sensor.method = method;
-    let world = World::new(Map::resolve(map)?, cfg)?;
+    let world = World::new(crate::worlds::resolve(map)?, cfg)?;
     VecEnv::new(world, vehicles, 0xBE7C4)
 }
 

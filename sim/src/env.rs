@@ -26,7 +26,6 @@ use crate::map::Map;
 use crate::scene::{Footprint, Scene};
 use crate::sensor::RangeSensor;
 use crate::vehicle::Pose;
-use crate::worlds::WorldPool;
 
 /// Grid cell size of the scene index [measured with `mapless bench sim` in env2: 2 m beat
 /// 0.5 m and 1 m for 7- and 100-beam scans; a 12 m beam crosses at most ~12 cells].
@@ -317,7 +316,7 @@ pub struct VecEnv {
     obs: Vec<f32>,
     obs_dim: usize,
     /// Where each episode's world is drawn from (one world: never redrawn).
-    pool: Arc<WorldPool>,
+    worlds: Vec<Arc<World>>,
     /// The stream that picks worlds (separate from the vehicles', so one world gives the same
     /// episodes as before pools existed).
     pick: Pcg64Mcg,
@@ -326,32 +325,33 @@ pub struct VecEnv {
 impl VecEnv {
     /// `n` vehicles; vehicle i draws from stream (seed, i). All are reset.
     pub fn new(world: Arc<World>, n: usize, seed: u64) -> Result<Self> {
-        Self::with_pool(Arc::new(WorldPool::single(world)), n, seed)
+        Self::with_worlds(vec![world], n, seed)
     }
 
-    /// `n` vehicles, each episode in a world drawn uniformly from `pool`.
-    pub fn with_pool(pool: Arc<WorldPool>, n: usize, seed: u64) -> Result<Self> {
-        let first = pool.worlds().first().ok_or_else(|| SimError::InvalidConfig("an empty world pool".into()))?;
+    /// `n` vehicles, each episode in a world drawn uniformly from `worlds` (e.g. a
+    /// [`crate::worlds::WorldPool`]'s).
+    pub fn with_worlds(worlds: Vec<Arc<World>>, n: usize, seed: u64) -> Result<Self> {
+        let first = worlds.first().ok_or_else(|| SimError::InvalidConfig("no world to drive in".into()))?;
         let d = first.obs_dim();
-        if let Some(w) = pool.worlds().iter().find(|w| w.obs_dim() != d) {
+        if let Some(w) = worlds.iter().find(|w| w.obs_dim() != d) {
             return Err(SimError::InvalidConfig(format!("world `{}` gives {} observation values, `{}` gives {d}", w.map.name, w.obs_dim(), first.map.name)));
         }
         let mut pick = Pcg64Mcg::seed_from_u64(splitmix64(seed ^ 0x5EED_0F30_17D5));
         let mut envs = Vec::with_capacity(n);
         for i in 0..n {
-            let w = if pool.len() > 1 { pool.get(pick.random_range(0..pool.len())) } else { first };
+            let w = if worlds.len() > 1 { &worlds[pick.random_range(0..worlds.len())] } else { first };
             envs.push(Env::new(Arc::clone(w), splitmix64(seed) ^ (i as u64).wrapping_mul(0xA24B_AED4_963E_E407)));
         }
         let mut obs = vec![0.0; n * d];
         for (e, o) in envs.iter_mut().zip(obs.chunks_exact_mut(d)) {
             e.reset(o)?;
         }
-        Ok(VecEnv { envs, obs, obs_dim: d, pool, pick })
+        Ok(VecEnv { envs, obs, obs_dim: d, worlds, pick })
     }
 
     /// The worlds episodes are drawn from.
-    pub fn pool(&self) -> &Arc<WorldPool> {
-        &self.pool
+    pub fn worlds(&self) -> &[Arc<World>] {
+        &self.worlds
     }
 
     pub fn len(&self) -> usize {
@@ -399,8 +399,8 @@ impl VecEnv {
             let cur = &mut self.obs[i * d..(i + 1) * d];
             if o.done() {
                 out.finished.push((i, env.summary(Some(o))));
-                if self.pool.len() > 1 {
-                    env.set_world(Arc::clone(self.pool.get(self.pick.random_range(0..self.pool.len()))))?;
+                if self.worlds.len() > 1 {
+                    env.set_world(Arc::clone(&self.worlds[self.pick.random_range(0..self.worlds.len())]))?;
                 }
                 env.reset(cur)?;
             } else {

@@ -158,13 +158,9 @@ impl Map {
         Self::from_vector_yaml(src, Path::new(&format!("<built-in {name}>")))
     }
 
-    /// A built-in map name, a generated world (`gen:FAMILY:SEED`, see [`crate::worlds`]), or a
-    /// path to a vector or ROS map YAML file.
+    /// A built-in map name, or a path to a vector or ROS map YAML file (a generated world
+    /// `gen:FAMILY:SEED` too: [`crate::worlds::resolve`]).
     pub fn resolve(name_or_path: &str) -> Result<Map> {
-        if let Some(spec) = crate::worlds::parse_spec(name_or_path) {
-            let (family, seed) = spec?;
-            return crate::worlds::generate(family, seed);
-        }
         if builtin_source(name_or_path).is_some() {
             return Self::builtin(name_or_path);
         }

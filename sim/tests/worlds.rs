@@ -28,9 +28,9 @@ fn a_seed_names_one_world_and_different_seeds_differ() {
     // The families draw from separate streams: rooms-5 and hall-5 are not one layout.
     assert_ne!(generate(Family::Rooms, 5).unwrap().bounds.width(), 0.0);
     // And `gen:FAMILY:SEED` resolves to the same world.
-    let r = Map::resolve("gen:forest:9").unwrap();
+    let r = mapless_sim::worlds::resolve("gen:forest:9").unwrap();
     assert_eq!(fingerprint(&r), fingerprint(&generate(Family::Forest, 9).unwrap()));
-    assert!(Map::resolve("gen:swamp:1").unwrap_err().to_string().contains("unknown world family"));
+    assert!(mapless_sim::worlds::resolve("gen:swamp:1").unwrap_err().to_string().contains("unknown world family"));
 }
 
 #[test]
@@ -126,7 +126,7 @@ fn vehicles_draw_a_world_per_episode_from_a_pool_deterministically() {
     let names: Vec<String> = pool.worlds().iter().map(|w| w.map.name.clone()).collect();
     assert_eq!(names, ["env1", "forest-0", "forest-1", "rooms-0", "rooms-1"]);
     let run = || {
-        let mut envs = VecEnv::with_pool(Arc::clone(&pool), 3, 11).unwrap();
+        let mut envs = VecEnv::with_worlds(pool.worlds().to_vec(), 3, 11).unwrap();
         let mut out = VecStep::default();
         let mut finished = Vec::new();
         for t in 0..1200 {

@@ -179,6 +179,18 @@ pub fn generate(family: Family, seed: u64) -> Result<Map> {
     Err(SimError::InvalidConfig(format!("world {name}: no layout with one connected drivable space in {MAX_DRAWS} draws")))
 }
 
+/// A map wherever a user names one: a generated world `gen:FAMILY:SEED`, else a built-in
+/// name or a map file ([`Map::resolve`]).
+pub fn resolve(name_or_path: &str) -> Result<Map> {
+    match parse_spec(name_or_path) {
+        Some(spec) => {
+            let (family, seed) = spec?;
+            generate(family, seed)
+        }
+        None => Map::resolve(name_or_path),
+    }
+}
+
 /// Parses `gen:FAMILY:SEED` (`None` if `spec` does not start with `gen:`).
 pub fn parse_spec(spec: &str) -> Option<Result<(Family, u64)>> {
     let rest = spec.strip_prefix(SPEC_PREFIX)?;

@@ -4,11 +4,10 @@
 
 use std::sync::Arc;
 
-use super::{Family, Split, generate};
+use super::{Family, Split, generate, resolve};
 use crate::config::EnvConfig;
 use crate::env::World;
 use crate::error::{Result, SimError};
-use crate::map::Map;
 
 /// Worlds per family named in a run's map list, unless the run says otherwise [ours: enough
 /// variety that a policy cannot learn the layouts, small enough to build in seconds].
@@ -59,7 +58,7 @@ impl WorldPool {
         let mut worlds = Vec::new();
         for item in items {
             match item {
-                MapItem::Map(name) => worlds.push(World::new(Map::resolve(&name)?, cfg.clone())?),
+                MapItem::Map(name) => worlds.push(World::new(resolve(&name)?, cfg.clone())?),
                 MapItem::Family(f) => {
                     for i in 0..per_family as u64 {
                         worlds.push(World::new(generate(f, split.seed(i)?)?, cfg.clone())?);
@@ -80,7 +79,7 @@ impl WorldPool {
     pub fn check(spec: &str) -> Result<()> {
         for item in parse_map_list(spec)? {
             if let MapItem::Map(name) = item {
-                Map::resolve(&name)?;
+                resolve(&name)?;
             }
         }
         Ok(())
@@ -88,6 +87,11 @@ impl WorldPool {
 
     pub fn worlds(&self) -> &[Arc<World>] {
         &self.worlds
+    }
+
+    /// The worlds, for [`crate::VecEnv::with_worlds`].
+    pub fn into_worlds(self) -> Vec<Arc<World>> {
+        self.worlds
     }
 
     pub fn len(&self) -> usize {
