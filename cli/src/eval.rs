@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
 use mapless_actor::{ActMode, Policy};
-use mapless_plots::{Canvas, default_px_per_m};
+use mapless_plots::{Canvas, contact_sheet_png, default_px_per_m};
 use mapless_proto::weights_file::read_safetensors_file;
 use mapless_sim::worlds::{Family, MapItem, Split, generate, parse_map_list, resolve};
 use mapless_sim::{Env, EnvConfig, World};
@@ -47,6 +47,25 @@ pub struct EvalSummary {
 }
 
 impl EvalSummary {
+    /// Per world (in the order first met): episodes, mean steps, collisions, mean EQS, EES and
+    /// distance.
+    pub fn per_map(&self) -> Vec<(String, usize, f64, u32, f64, f64, f64)> {
+        let mut rows: Vec<(String, Vec<&EvalEpisode>)> = Vec::new();
+        for e in &self.episodes {
+            match rows.iter_mut().find(|(m, _)| *m == e.map) {
+                Some((_, v)) => v.push(e),
+                None => rows.push((e.map.clone(), vec![e])),
+            }
+        }
+        rows.into_iter()
+            .map(|(m, v)| {
+                let n = v.len() as f64;
+                let mean = |f: &dyn Fn(&EvalEpisode) -> f64| v.iter().map(|e| f(e)).sum::<f64>() / n;
+                (m, v.len(), mean(&|e| f64::from(e.steps)), v.iter().filter(|e| e.collided).count() as u32, mean(&|e| e.eqs as f64), mean(&|e| e.ees), mean(&|e| e.distance_m))
+            })
+            .collect()
+    }
+
     /// The means on one line.
     pub fn one_line(&self) -> String {
         format!(
@@ -63,6 +82,9 @@ impl EvalSummary {
         )
     }
 }
+
+/// Episodes on the contact sheet (`sheet.png`) at most.
+const SHEET_EPISODES: usize = 24;
 
 /// The worlds of an evaluation: one map, or a list of maps and families whose episodes take
 /// the items in turn, a family's in its held-out worlds, one after the other.
@@ -129,6 +151,7 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
     let mut next = obs.clone();
     let mut action = [0.0f32; 2];
     let mut out = Vec::new();
+    let mut sheet = Vec::new();
     for k in 1..=episodes {
         let world = if k == 1 { Arc::clone(&first) } else { world_for(k as usize - 1)? };
         let mut e = Env::new(Arc::clone(&world), seed.wrapping_add(u64::from(k)).wrapping_mul(0x9E37_79B9_7F4A_7C15));
@@ -148,6 +171,9 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
             c.episode(&world.map, e.trajectory().unwrap_or(&[]), e.tracker(), world.cfg.exploration.ring_width_m, s.terminal)?;
             c.footer(&crate::episode_footer(&s, !world.map.shaded.is_empty()))?;
             c.save_png(&d.join(format!("episode-{k}.png")))?;
+            if sheet.len() < SHEET_EPISODES {
+                sheet.push(c);
+            }
         }
         out.push(EvalEpisode {
             episode: k,
@@ -177,6 +203,14 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
     };
     if let Some(d) = out_dir {
         std::fs::write(d.join("eval.json"), serde_json::to_string_pretty(&summary)?)?;
+        let title = format!(
+            "{} — policy v{}, {} episodes{}",
+            summary.map,
+            summary.policy_version,
+            episodes,
+            if episodes as usize > SHEET_EPISODES { format!(" (the first {SHEET_EPISODES})") } else { String::new() }
+        );
+        contact_sheet_png(&sheet, 4, 0.4, &title, &d.join("sheet.png"))?;
     }
     Ok(summary)
 }
@@ -195,5 +229,34 @@ mod tests {
         let one = EvalWorlds::new("env3", &env).unwrap();
         assert_eq!((one.world(5).unwrap().map.name.as_str(), one.label("env3").as_str()), ("env3", "env3"));
         assert!(EvalWorlds::new("env1+gen:lava", &env).is_err());
+    }
+
+    #[test]
+    fn the_per_map_table_groups_episodes_by_world_in_the_order_met() {
+        let ep = |k: u32, map: &str, steps: u32, collided: bool| EvalEpisode {
+            episode: k,
+            map: map.into(),
+            steps,
+            episode_return: 0.0,
+            collided,
+            eqs: 10 * u64::from(k),
+            ees: 1.0,
+            distance_m: 5.0,
+            shaded_time_s: 0.0,
+        };
+        let s = EvalSummary {
+            map: "a+b".into(),
+            policy_version: 1,
+            episodes: vec![ep(1, "b", 100, true), ep(2, "a", 300, false), ep(3, "b", 300, false)],
+            mean_steps: 0.0,
+            mean_return: 0.0,
+            mean_eqs: 0.0,
+            mean_ees: 0.0,
+            mean_distance_m: 0.0,
+            mean_shaded_time_s: 0.0,
+            collisions: 1,
+        };
+        let rows = s.per_map();
+        assert_eq!(rows.iter().map(|r| (r.0.as_str(), r.1, r.2, r.3, r.4)).collect::<Vec<_>>(), [("b", 2, 200.0, 1, 20.0), ("a", 1, 300.0, 0, 20.0)]);
     }
 }

@@ -178,9 +178,21 @@ struct EvalArgs {
     /// Run folder (its config.yaml and policy.safetensors).
     #[arg(long)]
     run: PathBuf,
-    /// Map [default: the run's training map].
-    #[arg(long)]
+    /// Map [default: the run's training map]: a name, a file, gen:FAMILY:SEED, or a list
+    /// joined by `+` (episodes take the items in turn; gen:FAMILY: its held-out worlds).
+    #[arg(long, conflicts_with_all = ["maps", "family"])]
     map: Option<String>,
+    /// Several maps; `--episodes` episodes on each.
+    #[arg(long, num_args = 1.., conflicts_with = "family")]
+    maps: Vec<String>,
+    /// A family of generated worlds (rooms, cave, hall, forest, field), with `--seeds`;
+    /// `--episodes` episodes on each world.
+    #[arg(long, requires = "seeds")]
+    family: Option<String>,
+    /// Seeds A..B of `--family` (held-out worlds start at 1000000).
+    #[arg(long, value_parser = worlds::parse_seeds, requires = "family")]
+    seeds: Option<std::ops::Range<u64>>,
+    /// Episodes (per map with `--maps` or `--family`).
     #[arg(long, default_value_t = 10)]
     episodes: u32,
     /// Step limit per episode [default: the run's].
@@ -296,9 +308,21 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
     if let Some(m) = a.max_steps {
         env.episode.max_steps = m;
     }
-    let map = a.map.clone().unwrap_or_else(|| cfg.map.clone());
-    let out = a.out.clone().unwrap_or_else(|| a.run.join(format!("eval-{}", map.replace(['/', '.'], "_"))));
-    let s = eval::evaluate(&a.run.join("policy.safetensors"), &map, &env, a.episodes, a.seed, Some(&out))?;
+    // --maps and --family name several maps: the episodes take them in turn, --episodes each.
+    let several: Vec<String> = match (&a.family, &a.seeds) {
+        (Some(f), Some(seeds)) => {
+            mapless_sim::worlds::Family::parse(f)?;
+            seeds.clone().map(|s| format!("gen:{f}:{s}")).collect()
+        }
+        _ => a.maps.clone(),
+    };
+    let (map, episodes) = if several.is_empty() { (a.map.clone().unwrap_or_else(|| cfg.map.clone()), a.episodes) } else { (several.join("+"), a.episodes * several.len() as u32) };
+    let label = match (&a.family, &a.seeds) {
+        (Some(f), Some(s)) => format!("{f}-{}-{}", s.start, s.end),
+        _ => map.replace(['/', '.', '+', ':'], "_"),
+    };
+    let out = a.out.clone().unwrap_or_else(|| a.run.join(format!("eval-{label}")));
+    let s = eval::evaluate(&a.run.join("policy.safetensors"), &map, &env, episodes, a.seed, Some(&out))?;
     if a.json {
         println!("{}", serde_json::to_string(&s)?);
     } else {
@@ -317,7 +341,14 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
             );
         }
         println!("mean {:>6.0} {:>9.1} {:>5.1} {:>6.2} {:>9.1} {:>8.1}  ({} collisions)", s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.mean_shaded_time_s, s.collisions);
-        println!("pictures and eval.json in {}", out.display());
+        let per_map = s.per_map();
+        if per_map.len() > 1 {
+            println!("\n{:<24} {:>4} {:>6} {:>10} {:>6} {:>5} {:>7}", "map", "eps", "steps", "collisions", "EQS", "EES", "dist m");
+            for (m, n, steps, coll, eqs, ees, dist) in &per_map {
+                println!("{m:<24} {n:>4} {steps:>6.0} {coll:>10} {eqs:>6.1} {ees:>5.2} {dist:>7.1}");
+            }
+        }
+        println!("pictures (episode-K.png, sheet.png) and eval.json in {}", out.display());
     }
     Ok(())
 }
