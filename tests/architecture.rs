@@ -3,7 +3,7 @@
 //!
 //! ```text
 //!   proto ◄── net ◄── replay            sim ◄── actor ──► net
-//!               ▲◄── learner-config ◄── learner (tch)     sim ◄── plots
+//!               ▲◄── learner-config ◄── learner (tch)     sim, proto ◄── plots
 //!   cli (mapless): everything but the learner        tests: everything
 //! ```
 
@@ -16,8 +16,9 @@ use serde_json::Value;
 const ALLOWED: &[(&str, &[&str])] = &[
     ("mapless-proto", &[]),
     ("mapless-sim", &[]),
-    // pictures of the simulator's maps and episodes, and training curves
-    ("mapless-plots", &["mapless-sim"]),
+    // pictures of the simulator's maps and episodes, and training curves; proto only for the
+    // workspace's one atomic file write (`mapless_proto::atomic_file`), no wire types
+    ("mapless-plots", &["mapless-sim", "mapless-proto"]),
     ("mapless-net", &["mapless-proto"]),
     ("mapless-replay", &["mapless-proto", "mapless-net"]),
     ("mapless-actor", &["mapless-proto", "mapless-sim", "mapless-net"]),

@@ -256,8 +256,8 @@ fn atomic_writes_replace_the_file_and_others_can_read_it() {
     use std::os::unix::fs::PermissionsExt;
     let d = tempfile::tempdir().unwrap();
     let p = d.path().join("policy.safetensors");
-    mapless_proto::weights_file::write_file_atomically(&p, b"old").unwrap();
-    mapless_proto::weights_file::write_file_atomically(&p, b"new").unwrap();
+    mapless_proto::atomic_file::write_file_atomically(&p, b"old").unwrap();
+    mapless_proto::atomic_file::write_file_atomically(&p, b"new").unwrap();
     assert_eq!(std::fs::read(&p).unwrap(), b"new");
     // rw-r--r-- less the umask, as fs::write makes files (tempfile alone makes them 0600).
     assert_eq!(std::fs::metadata(&p).unwrap().permissions().mode() & 0o044, 0o044);

@@ -161,7 +161,7 @@ fn policy_bytes(agent: &Agent) -> Result<Vec<u8>, LearnerError> {
 /// `version` (update counter), `format`, `format_version` and, for SAC, `sac.log_std_min` /
 /// `sac.log_std_max`.
 pub fn export_policy(agent: &Agent, path: &Path) -> Result<(), LearnerError> {
-    Ok(mapless_proto::weights_file::write_file_atomically(path, &policy_bytes(agent)?)?)
+    Ok(mapless_proto::atomic_file::write_file_atomically(path, &policy_bytes(agent)?)?)
 }
 
 /// A policy file read back: tensors `(name, shape, values)` sorted by name, and the metadata.
@@ -251,7 +251,7 @@ pub fn save(root: &Path, agent: &Agent, extra: &serde_json::Value, keep: usize) 
     }
     let dir = root.join(&name);
     write_checkpoint(&dir, agent, extra)?;
-    mapless_proto::weights_file::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes())?;
+    mapless_proto::atomic_file::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes())?;
 
     let mut all: Vec<String> = fs::read_dir(root).map_err(|e| io_err(root, "list", e))?.filter_map(|e| e.ok()?.file_name().into_string().ok()).filter(|n| n.starts_with("ckpt-")).collect();
     all.sort();

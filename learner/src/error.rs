@@ -204,6 +204,14 @@ impl From<mapless_learner_config::ConfigError> for LearnerError {
     }
 }
 
+/// A failed atomic write (a policy file, checkpoints' `LATEST`): the path the failed step acted
+/// on and what the OS said.
+impl From<mapless_proto::atomic_file::AtomicWriteError> for LearnerError {
+    fn from(e: mapless_proto::atomic_file::AtomicWriteError) -> Self {
+        LearnerError::FileIo { path: e.path, error: e.error }
+    }
+}
+
 impl From<mapless_proto::weights_file::WeightsFileError> for LearnerError {
     fn from(e: mapless_proto::weights_file::WeightsFileError) -> Self {
         use mapless_proto::weights_file::WeightsFileError;

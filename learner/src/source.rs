@@ -38,8 +38,9 @@ pub trait ReplaySource: Send {
     /// later. Tables that sample uniformly ignore updates.
     fn update_priorities(&mut self, keys: &[u64], priorities: &[f32]) -> Result<(), LearnerError>;
 
-    /// Counters since the source was created.
-    fn stats(&self) -> SourceStats;
+    /// Counters since the source was created (`mapless-net`'s [`SampleStats`], which every
+    /// source reports: an in-process one counts priority updates it applied as acknowledged).
+    fn stats(&self) -> SampleStats;
 
     /// Like [`ReplaySource::next_batch`], but waits at most about `timeout`: `Ok(None)` when no
     /// minibatch came in time (so a caller can look at its stop flag). The default waits as
@@ -48,27 +49,6 @@ pub trait ReplaySource: Send {
         let _ = timeout;
         self.next_batch().map(Some)
     }
-}
-
-/// What a source has done and what went wrong, for logs and TensorBoard.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct SourceStats {
-    /// Minibatches handed to the update loop.
-    pub batches: u64,
-    /// Sample streams (re)opened after the first one.
-    pub reconnects: u64,
-    /// Sample streams that broke or could not be opened (each is followed by a backoff).
-    pub stream_errors: u64,
-    /// Minibatches received that failed `SampledBatch::validate` and were dropped.
-    pub invalid_batches: u64,
-    /// Priority updates applied (in process) or acknowledged by the service.
-    pub priority_updates: u64,
-    /// Priority updates that failed after retries and were dropped.
-    pub priority_update_errors: u64,
-    /// Priority updates dropped because the outgoing queue was full.
-    pub priority_updates_dropped: u64,
-    /// The most recent error, if any.
-    pub last_error: Option<String>,
 }
 
 /// Checks priorities before they leave the update thread; returns them as f64. Every
@@ -86,21 +66,6 @@ pub fn checked_priorities(keys: &[u64], priorities: &[f32]) -> Result<Vec<f64>, 
 // ---------------------------------------------------------------------------------------------
 // gRPC source
 // ---------------------------------------------------------------------------------------------
-
-impl From<SampleStats> for SourceStats {
-    fn from(s: SampleStats) -> Self {
-        SourceStats {
-            batches: s.batches,
-            reconnects: s.reconnects,
-            stream_errors: s.stream_errors,
-            invalid_batches: s.invalid_batches,
-            priority_updates: s.priority_updates,
-            priority_update_errors: s.priority_update_errors,
-            priority_updates_dropped: s.priority_updates_dropped,
-            last_error: s.last_error,
-        }
-    }
-}
 
 /// Samples from the replay service over gRPC: a [`ReplaySource`] over a [`SampleClient`]
 /// (prefetching on its background thread; see the module doc), whose errors it reports as
@@ -141,7 +106,7 @@ impl ReplaySource for GrpcSource {
         Ok(self.client.update_priorities(keys, priorities)?)
     }
 
-    fn stats(&self) -> SourceStats {
-        self.client.stats().into()
+    fn stats(&self) -> SampleStats {
+        self.client.stats()
     }
 }

@@ -59,7 +59,8 @@ pub struct SampleStats {
     pub stream_errors: u64,
     /// Minibatches received that failed `SampledBatch::validate` and were dropped.
     pub invalid_batches: u64,
-    /// Priority updates acknowledged by the service.
+    /// Priority updates acknowledged by the service (or applied, by a sampler in the same
+    /// process that keeps these counters).
     pub priority_updates: u64,
     /// Priority updates that failed after retries and were dropped.
     pub priority_update_errors: u64,

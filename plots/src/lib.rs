@@ -10,7 +10,8 @@
 //!        │  plotters: layout, axes in metres / episodes, tick labels, titles, legends
 //!        │  tiny-skia: anti-aliased map shapes, paths, data lines (Picture::paint)
 //!        ▼
-//!   picture: one RGB buffer, PNG written atomically (temp file + rename)
+//!   picture: one RGB buffer, PNG written atomically (temp file + rename, by
+//!            mapless-proto's atomic_file, the workspace's one atomic write)
 //! ```
 //!
 //! Text is DejaVu Sans, embedded in the crate (`fonts/`, Bitstream Vera license) and handed to

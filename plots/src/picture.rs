@@ -85,8 +85,8 @@ impl Picture {
         })
     }
 
-    /// Encodes PNG (RGB, 8 bits) and writes it atomically (temp file + rename), creating the
-    /// parent directory.
+    /// Encodes PNG (RGB, 8 bits) and writes it atomically (`mapless_proto::atomic_file`: temp
+    /// file, fsync, rename), creating the parent directory.
     pub(crate) fn save_png(&self, path: &Path) -> Result<()> {
         let out_err = |problem: String| PlotError::Output { path: path.to_path_buf(), problem };
         let mut bytes = Vec::new();
@@ -94,9 +94,7 @@ impl Picture {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|e| out_err(e.to_string()))?;
         }
-        let tmp = path.with_extension("png.tmp");
-        std::fs::write(&tmp, bytes).map_err(|e| out_err(e.to_string()))?;
-        std::fs::rename(&tmp, path).map_err(|e| out_err(e.to_string()))
+        mapless_proto::atomic_file::write_file_atomically(path, &bytes).map_err(|e| out_err(format!("{}: {}", e.step, e.error)))
     }
 }
 

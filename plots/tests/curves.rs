@@ -89,7 +89,8 @@ fn default_style_is_matlabs_window_50() {
 
 #[test]
 fn learning_curve_picture_shows_the_rising_average_in_both_panels() {
-    let path = out("curves.png");
+    // A folder of its own: the other tests write their pictures beside each other at once.
+    let path = out("learning-curve/curves.png");
     let style = CurveStyle {
         title: "env1 SAC — order-50 moving average".into(),
         return_goal: Some(320.0),
@@ -98,7 +99,8 @@ fn learning_curve_picture_shows_the_rising_average_in_both_panels() {
         ..CurveStyle::default()
     };
     training_curves_png(&learning_curve(600), &style, &path).unwrap();
-    assert!(!path.with_extension("png.tmp").exists(), "temp file renamed away");
+    let left: Vec<_> = std::fs::read_dir(path.parent().unwrap()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(left, ["curves.png"], "temp file renamed away");
     let img = Decoded::open(&path);
     assert_eq!((img.width, img.height), (WIDTH_PX, HEIGHT_PX));
     assert_eq!((img.width, img.height), (1000, 700));

@@ -24,12 +24,15 @@
 //!   mapping to a gRPC status.
 //!
 //! - [`weights_file`]: the `.safetensors` codec of [`v1::WeightsSnapshot`] (policy files that
-//!   actors, `mapless eval` and deployments read without libtorch) and the workspace's one
-//!   atomic file write.
+//!   actors, `mapless eval` and deployments read without libtorch);
+//! - [`atomic_file`]: the workspace's one atomic file write (the lowest crate that the
+//!   learner, the replay, the supervisor and the pictures all reach).
 //!
-//! Apart from [`weights_file`]'s reads and writes, nothing here does I/O or spawns tasks;
+//! Apart from [`weights_file`]'s and [`atomic_file`]'s reads and writes, nothing here does
+//! I/O or spawns tasks;
 //! servers and clients live in `mapless-net` and the crates that use it.
 
+pub mod atomic_file;
 mod error;
 pub mod exploration;
 mod floats;

@@ -1,5 +1,6 @@
 //! Policy weights as `.safetensors` files: the codec between a [`WeightsSnapshot`] and the
-//! bytes of a file, and the one atomic file write of the workspace. Pure Rust, so that actors,
+//! bytes of a file, written with the workspace's one atomic write
+//! ([`crate::atomic_file`]). Pure Rust, so that actors,
 //! `mapless eval` and deployments read policies without libtorch.
 //!
 //! # The `.safetensors` layout of a snapshot
@@ -23,9 +24,9 @@
 
 use std::collections::HashMap;
 use std::fs;
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
+use crate::atomic_file::{AtomicWriteError, write_file_atomically};
 use crate::v1::{Algorithm, Dtype, NamedTensor, ProtocolVersion, WeightsSnapshot};
 
 /// Prefix of the `__metadata__` keys this module writes itself.
@@ -55,6 +56,14 @@ pub enum WeightsFileError {
     /// The file system refused.
     #[error("{path}: {error}")]
     Io { path: PathBuf, error: std::io::Error },
+}
+
+/// A failed atomic write as the file system's refusal: the path the failed step acted on and
+/// what the OS said.
+impl From<AtomicWriteError> for WeightsFileError {
+    fn from(e: AtomicWriteError) -> Self {
+        WeightsFileError::Io { path: e.path, error: e.error }
+    }
 }
 
 fn invalid(origin: impl Into<String>, reason: impl Into<String>) -> WeightsFileError {
@@ -202,34 +211,11 @@ fn io_error(path: &Path, error: std::io::Error) -> WeightsFileError {
     WeightsFileError::Io { path: path.to_owned(), error }
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file in the same directory (`tempfile`),
-/// fsync, rename over `path` (`persist`), fsync of the directory. A crash leaves either the old
-/// file or the new one, never a torn one. The one atomic write of the workspace's services (the
-/// policy, checkpoints' `LATEST`, the run's config and summary, the weights version file).
-pub fn write_file_atomically(path: &Path, bytes: &[u8]) -> Result<(), WeightsFileError> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
-        _ => PathBuf::from("."),
-    };
-    // rw-r--r-- (less the umask) as `fs::write` makes them, not tempfile's private 0600: a
-    // policy or a run folder is read by other users and containers.
-    let mode = <fs::Permissions as std::os::unix::fs::PermissionsExt>::from_mode(0o644);
-    let mut tmp = tempfile::Builder::new().prefix(".").suffix(".tmp").permissions(mode).tempfile_in(&dir).map_err(|e| io_error(&dir, e))?;
-    tmp.write_all(bytes).map_err(|e| io_error(tmp.path(), e))?;
-    tmp.as_file().sync_all().map_err(|e| io_error(tmp.path(), e))?;
-    // A failed persist drops (removes) the temporary file.
-    tmp.persist(path).map_err(|e| io_error(path, e.error))?;
-    // The rename itself is durable only once the directory is.
-    if let Ok(d) = fs::File::open(&dir) {
-        d.sync_all().map_err(|e| io_error(&dir, e))?;
-    }
-    Ok(())
-}
-
-/// [`snapshot_to_safetensors`], written atomically to `path` ([`write_file_atomically`]).
+/// [`snapshot_to_safetensors`], written atomically and durably to `path`
+/// ([`write_file_atomically`]).
 pub fn write_safetensors_file(path: &Path, snapshot: &WeightsSnapshot) -> Result<(), WeightsFileError> {
     let bytes = snapshot_to_safetensors(snapshot)?;
-    write_file_atomically(path, &bytes)
+    Ok(write_file_atomically(path, &bytes)?)
 }
 
 /// Reads a `.safetensors` file written by [`write_safetensors_file`].

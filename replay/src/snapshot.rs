@@ -6,6 +6,7 @@
 //!
 //! ```text
 //!   <dir>/snapshots/snap-<lsn:020>.snap   written as .tmp, fsynced, renamed, directory fsynced
+//!                                         (mapless_proto::atomic_file)
 //!
 //!   "MPLSSNAP" | version u32 = 1 | meta_len u32 | meta (JSON, SnapshotMeta)
 //!   | weight f64 × capacity | live u8 × capacity | times_sampled u32 × capacity
@@ -27,6 +28,7 @@ use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use mapless_proto::atomic_file::{Durability, is_temp_file_name, write_file_atomically_with};
 use rand_pcg::Pcg64Mcg;
 use serde::{Deserialize, Serialize};
 
@@ -34,7 +36,7 @@ use crate::actors::ActorStats;
 use crate::clock::unix_ms;
 use crate::config::SamplerConfig;
 use crate::error::ReplayError;
-use crate::wal::{parse_numbered_name, storage, sync_dir};
+use crate::wal::{atomic_write_storage, parse_numbered_name, storage, sync_dir};
 
 const MAGIC: &[u8; 8] = b"MPLSSNAP";
 const FORMAT_VERSION: u32 = 1;
@@ -166,12 +168,13 @@ pub(crate) struct SnapshotStore {
 }
 
 impl SnapshotStore {
-    /// Opens (creating) the directory and removes half-written `.tmp` files.
+    /// Opens (creating) the directory and removes half-written temporary files (the atomic
+    /// write's, and `snap-<lsn>.snap.tmp` of older builds).
     pub fn open(dir: PathBuf, keep: usize) -> Result<SnapshotStore, ReplayError> {
         fs::create_dir_all(&dir).map_err(|e| storage(&dir, format!("create: {e}")))?;
         for entry in fs::read_dir(&dir).map_err(|e| storage(&dir, format!("list: {e}")))? {
             let entry = entry.map_err(|e| storage(&dir, format!("list: {e}")))?;
-            if entry.file_name().to_str().is_some_and(|n| n.ends_with(".snap.tmp")) {
+            if entry.file_name().to_str().is_some_and(|n| n.ends_with(".snap.tmp") || is_temp_file_name(n)) {
                 let p = entry.path();
                 fs::remove_file(&p).map_err(|e| storage(&p, format!("remove stale temporary file: {e}")))?;
             }
@@ -203,23 +206,14 @@ impl SnapshotStore {
         Ok(snap)
     }
 
-    /// Writes a snapshot durably: temporary file, fsync, rename over `snap-<lsn>.snap`,
-    /// directory fsync. Returns its path and size in bytes.
+    /// Writes a snapshot durably (`mapless_proto::atomic_file`, [`Durability::Synced`]):
+    /// temporary file, fsync, rename over `snap-<lsn>.snap`, directory fsync. Returns its path
+    /// and size in bytes.
     pub fn write(&self, snap: &SnapshotData) -> Result<(PathBuf, u64), ReplayError> {
         let path = self.dir.join(snapshot_name(snap.meta.lsn));
-        let tmp = self.dir.join(format!("{}.tmp", snapshot_name(snap.meta.lsn)));
         let bytes = snap.encode().map_err(|e| storage(&path, e))?;
-        let result = (|| {
-            let mut f = OpenOptions::new().write(true).create(true).truncate(true).open(&tmp).map_err(|e| storage(&tmp, format!("create: {e}")))?;
-            f.write_all(&bytes).map_err(|e| storage(&tmp, format!("write: {e}")))?;
-            f.sync_all().map_err(|e| storage(&tmp, format!("fsync: {e}")))?;
-            fs::rename(&tmp, &path).map_err(|e| storage(&path, format!("rename from {}: {e}", tmp.display())))?;
-            sync_dir(&self.dir)
-        })();
-        if result.is_err() {
-            let _ = fs::remove_file(&tmp);
-        }
-        result.map(|()| (path, bytes.len() as u64))
+        write_file_atomically_with(&path, Durability::Synced, |f| f.write_all(&bytes)).map_err(atomic_write_storage)?;
+        Ok((path, bytes.len() as u64))
     }
 
     /// Renames an unusable snapshot to `<name>.<why>.<unix_ms>` so it is never loaded again
@@ -301,6 +295,25 @@ mod tests {
             assert!(SnapshotData::decode(&bad).is_err(), "flip at {i} went unnoticed");
         }
         assert!(SnapshotData::decode(&bytes[..bytes.len() - 1]).is_err());
+    }
+
+    #[test]
+    fn snapshots_are_written_whole_and_a_crash_s_temporary_files_removed_on_open() {
+        let dir = std::env::temp_dir().join(format!("mapless-snapshot-store-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        let store = SnapshotStore::open(dir.clone(), 2).unwrap();
+        let (path, bytes) = store.write(&sample()).unwrap();
+        assert_eq!((path.file_name().unwrap().to_str().unwrap(), bytes), (snapshot_name(12).as_str(), fs::metadata(&path).unwrap().len()));
+        assert_eq!(SnapshotStore::load(&path).unwrap().meta, sample().meta);
+        // What a crash before the rename leaves: the atomic write's temporary file, and an
+        // older build's `snap-<lsn>.snap.tmp`.
+        fs::write(dir.join(".a1B2c3.tmp"), b"half").unwrap();
+        fs::write(dir.join(format!("{}.tmp", snapshot_name(13))), b"half").unwrap();
+        SnapshotStore::open(dir.clone(), 2).unwrap();
+        let mut left: Vec<String> = fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+        left.sort();
+        assert_eq!(left, [snapshot_name(12)]);
+        fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

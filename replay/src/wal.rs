@@ -37,6 +37,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use mapless_proto::atomic_file::{AtomicWriteError, Durability, is_temp_file_name, write_file_atomically_with};
+
 use crate::clock::unix_ms;
 use crate::config::FsyncPolicy;
 use crate::error::ReplayError;
@@ -75,6 +77,12 @@ pub(crate) fn parse_numbered_name(name: &str, prefix: &str, suffix: &str) -> Opt
         return None;
     }
     digits.parse().ok()
+}
+
+/// A failed atomic write (a snapshot, a new log segment) as a storage error: the path the
+/// failed step acted on, the step and what the OS said.
+pub(crate) fn atomic_write_storage(e: AtomicWriteError) -> ReplayError {
+    storage(&e.path, format!("{}: {}", e.step, e.error))
 }
 
 /// fsyncs a directory so that files created, renamed or removed in it survive power loss.
@@ -452,10 +460,11 @@ impl Wal {
     /// segment survives; `key_end` is the table's next key after recovery.
     pub fn reopen(scan: &LogScan, policy: FsyncPolicy, segment_bytes: u64, next_lsn_if_empty: u64, key_end: u64) -> Result<Wal, ReplayError> {
         let dir = scan.dir.clone();
-        // A segment whose creation a crash interrupted (never renamed, so never written to).
+        // A segment whose creation a crash interrupted (never renamed, so never written to):
+        // the atomic write's temporary file, or `seg-<lsn>.log.tmp` of older builds.
         for entry in fs::read_dir(&dir).map_err(|e| storage(&dir, format!("list: {e}")))?.flatten() {
             let name = entry.file_name();
-            if name.to_str().is_some_and(|n| n.starts_with("seg-") && n.ends_with(".log.tmp")) {
+            if name.to_str().is_some_and(|n| (n.starts_with("seg-") && n.ends_with(".log.tmp")) || is_temp_file_name(n)) {
                 let p = entry.path();
                 fs::remove_file(&p).map_err(|e| storage(&p, format!("remove: {e}")))?;
             }
@@ -657,21 +666,20 @@ impl Wal {
     }
 }
 
-/// Creates `seg-<first_lsn>.log` with its header: written as `.tmp` and renamed, so a crash
-/// never leaves a segment without a whole header.
+/// Creates `seg-<first_lsn>.log` with its header, open for appending: written as a temporary
+/// file and renamed (`mapless_proto::atomic_file`), so a crash never leaves a segment without a
+/// whole header. Not fsynced here: appends sync the segment by the log's policy, and the
+/// directory is synced by the caller (at once under `always`, else by the sync thread).
 fn create_segment(dir: &Path, first_lsn: u64) -> Result<(File, PathBuf), ReplayError> {
     let path = dir.join(segment_name(first_lsn));
     if path.exists() {
         return Err(storage(&path, "already exists"));
     }
-    let tmp = dir.join(format!("{}.tmp", segment_name(first_lsn)));
-    let file = OpenOptions::new().read(true).write(true).create(true).truncate(true).open(&tmp).map_err(|e| storage(&tmp, format!("create: {e}")))?;
     let mut header = [0u8; SEGMENT_HEADER_BYTES];
     header[0..8].copy_from_slice(SEGMENT_MAGIC);
     header[8..12].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
     header[16..24].copy_from_slice(&first_lsn.to_le_bytes());
-    file.write_all_at(&header, 0).map_err(|e| storage(&tmp, format!("write header: {e}")))?;
-    fs::rename(&tmp, &path).map_err(|e| storage(&path, format!("rename from {}: {e}", tmp.display())))?;
+    let file = write_file_atomically_with(&path, Durability::Unsynced, |f| f.write_all_at(&header, 0)).map_err(atomic_write_storage)?;
     Ok((file, path))
 }
 

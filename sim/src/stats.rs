@@ -1,6 +1,7 @@
 //! The paper's order-W moving average (MATLAB's Episode Manager "average window", W = 50): the
-//! one implementation behind the training-curve pictures (`mapless-plots`) and the convergence
-//! rule (`mapless`'s `protocol::convergence_episode`).
+//! one implementation behind the training-curve pictures (`mapless-plots`), the convergence
+//! rule (`mapless`'s `protocol::convergence_episode`), and, its newest entry alone
+//! ([`trailing_mean`]), the stop rule, progress line and summary of `mapless train`.
 
 /// Order-`window` trailing moving average (first window-1 points average what exists).
 ///
@@ -35,6 +36,15 @@ pub fn moving_average(values: &[f64], window: usize) -> Vec<f64> {
     out
 }
 
+/// The newest entry of [`moving_average`] (the order-`window` average now) without the whole
+/// series: the mean of the finite values among the last `window` of `values`; NaN when those
+/// hold no finite value (or there are none). A `window` of 0 is treated as 1. O(window): reads
+/// `values` from the back.
+pub fn trailing_mean(values: impl DoubleEndedIterator<Item = f64>, window: usize) -> f64 {
+    let (sum, count) = values.rev().take(window.max(1)).filter(|v| v.is_finite()).fold((0.0f64, 0usize), |(s, c), v| (s + v, c + 1));
+    if count > 0 { sum / count as f64 } else { f64::NAN }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -58,6 +68,24 @@ mod tests {
         assert!(close(&moving_average(&[f64::NAN, f64::INFINITY, 2.0], 2), &[f64::NAN, f64::NAN, 2.0]));
         // A non-finite value leaves the average once it leaves the window.
         assert!(close(&moving_average(&[f64::NAN, 2.0, 4.0, 6.0], 2), &[f64::NAN, 2.0, 3.0, 5.0]));
+    }
+
+    #[test]
+    fn trailing_mean_is_the_newest_entry_of_the_moving_average() {
+        let series: [&[f64]; 6] = [&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0], &[10.0, 0.0, 20.0, -10.0], &[1.0, f64::NAN, 3.0, 5.0], &[f64::NAN, f64::INFINITY, 2.0], &[f64::NAN, 2.0, 4.0, 6.0], &[7.0]];
+        for v in series {
+            for w in [0, 1, 2, 3, 10] {
+                let newest = moving_average(v, w).last().copied().unwrap();
+                assert!(close(&[trailing_mean(v.iter().copied(), w)], &[newest]), "{v:?}, window {w}");
+            }
+        }
+        // By hand: the last three of six; fewer values than the window; none at all.
+        assert_eq!(trailing_mean([1.0, 2.0, 3.0, 4.0, 5.0, 6.0].into_iter(), 3), 5.0);
+        assert_eq!(trailing_mean([2.0, 4.0].into_iter(), 50), 3.0);
+        assert!(trailing_mean(std::iter::empty(), 50).is_nan());
+        // Non-finite values are skipped; a window of them alone gives NaN.
+        assert_eq!(trailing_mean([1.0, 3.0, f64::NAN].into_iter(), 2), 3.0);
+        assert!(trailing_mean([1.0, f64::NAN, f64::INFINITY].into_iter(), 2).is_nan());
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use mapless_learner::LearnerError;
-use mapless_learner::source::{ReplaySource, SourceStats, checked_priorities};
+use mapless_learner::source::{ReplaySource, SampleStats, checked_priorities};
 use mapless_proto::v1::SampledBatch;
 use mapless_replay::Table;
 
@@ -18,7 +18,7 @@ pub struct InProcess {
     batch_size: usize,
     importance_beta: Option<f64>,
     timeout: Option<Duration>,
-    stats: SourceStats,
+    stats: SampleStats,
 }
 
 impl std::fmt::Debug for InProcess {
@@ -40,7 +40,7 @@ impl InProcess {
         if batch_size == 0 || batch_size > max {
             return Err(LearnerError::ReplaySourceConfig { reason: format!("batch_size is {batch_size}, must be in 1..={max} (the table's max_sample_rows)") });
         }
-        Ok(Self { table, batch_size, importance_beta: None, timeout: None, stats: SourceStats::default() })
+        Ok(Self { table, batch_size, importance_beta: None, timeout: None, stats: SampleStats::default() })
     }
 
     /// Importance-sampling exponent β (finite, >= 0); without it the table's configured β is
@@ -96,7 +96,7 @@ impl ReplaySource for InProcess {
         }
     }
 
-    fn stats(&self) -> SourceStats {
+    fn stats(&self) -> SampleStats {
         self.stats.clone()
     }
 }

@@ -6,6 +6,7 @@ use std::path::Path;
 
 use anyhow::Result;
 use mapless_proto::v1::EpisodeStats;
+use mapless_sim::stats::trailing_mean;
 use serde::{Deserialize, Serialize};
 
 // ---------------------------------------------------------------------------------------------
@@ -79,16 +80,6 @@ pub(crate) fn truncate_torn_line(path: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Trailing mean of the last `window` values (fewer at the start).
-pub(crate) fn trailing_mean(values: impl DoubleEndedIterator<Item = f64>, window: usize) -> f64 {
-    let (mut s, mut n) = (0.0, 0usize);
-    for v in values.rev().take(window) {
-        s += v;
-        n += 1;
-    }
-    if n == 0 { f64::NAN } else { s / n as f64 }
-}
-
 /// The run's training episodes: those of earlier sessions (read back from `episodes.csv`) and
 /// this session's, appended to the file as they arrive.
 pub(crate) struct Episodes {
@@ -130,8 +121,14 @@ impl Episodes {
 
     /// The order-`window` moving averages of return and steps (NaN before the first episode).
     pub(crate) fn averages(&self, window: usize) -> (f64, f64) {
-        (trailing_mean(self.rows.iter().map(|e| e.episode_return), window), trailing_mean(self.rows.iter().map(|e| f64::from(e.steps)), window))
+        averages(&self.rows, window)
     }
+}
+
+/// The order-`window` moving averages of return and steps now: the newest entries of
+/// `mapless_sim::stats::moving_average` over `rows` (NaN before the first episode).
+pub(crate) fn averages(rows: &[EpisodeRow], window: usize) -> (f64, f64) {
+    (trailing_mean(rows.iter().map(|e| e.episode_return), window), trailing_mean(rows.iter().map(|e| f64::from(e.steps)), window))
 }
 
 /// Appends a training episode (numbered after the last one) to `rows` and `episodes.csv`;

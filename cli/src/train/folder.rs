@@ -47,7 +47,7 @@ impl RunFolder {
 /// Writes `path` whole or not at all (a temporary file beside it, then a rename), so a run
 /// killed mid-write leaves the old file, never a torn one.
 pub fn write_atomic(path: &Path, contents: &str) -> Result<()> {
-    mapless_proto::weights_file::write_file_atomically(path, contents.as_bytes()).with_context(|| format!("writing {}", path.display()))
+    mapless_proto::atomic_file::write_file_atomically(path, contents.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }
 
 #[cfg(test)]

@@ -54,7 +54,7 @@ use folder::RunFolder;
 use progress::{Figures, Progress};
 use status::Status;
 use stop::{Averages, Interrupt, StopRules};
-use summary::{End, LearnerEnd};
+use summary::End;
 
 /// Runs `mapless train`.
 pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
@@ -122,14 +122,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         evals.keep_the_policy_that_met_the_criteria()?;
     }
     let evaluation = evals.final_evaluation(&status)?;
-    let end = End {
-        wall_s: status.wall_s(),
-        env_steps: status.env_steps,
-        learner: LearnerEnd { updates: status.final_updates(&late), weights_version: status.learner.weights_version },
-        actor_restarts,
-        steady: status.steady_rates(stopped_at),
-        evaluation,
-    };
+    let end = End { wall_s: status.wall_s(), env_steps: status.env_steps, learner: status.learner_end(&late), actor_restarts, steady: status.steady_rates(stopped_at), evaluation };
     let summary = Summary::new(&run.dir, &cfg, &episodes, rules.outcome(), end);
     summary.write(&run.dir)?;
     progress::closing(&summary, &run.dir);

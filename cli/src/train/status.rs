@@ -9,6 +9,8 @@ use mapless_learner_config::LearnerEvent;
 use mapless_proto::v1::ServerInfoResponse;
 use serde::{Deserialize, Serialize};
 
+use super::summary::LearnerEnd;
+
 /// The newest `LearnerEvent::Status` the learner printed.
 #[derive(Default, Clone, Debug, PartialEq)]
 pub(crate) struct LearnerStatus {
@@ -157,10 +159,18 @@ impl Status {
         })
     }
 
-    /// The learner's updates at the end: those of the last event it printed while it stopped
-    /// (its `stopped` line after the final checkpoint), else those of its last status.
-    pub(crate) fn final_updates(&self, late: &[LearnerEvent]) -> u64 {
-        late.last().map_or(self.learner.updates, LearnerEvent::updates)
+    /// The learner's figures at the end, `late` being what it printed while it stopped: those
+    /// of its `stopped` event (printed after the final publication and checkpoint), else those
+    /// of its newest status line.
+    pub(crate) fn learner_end(&self, late: &[LearnerEvent]) -> LearnerEnd {
+        let mut end = LearnerEnd { updates: self.learner.updates, weights_version: self.learner.weights_version };
+        for e in late {
+            match *e {
+                LearnerEvent::Status { updates, weights_version, .. } => end = LearnerEnd { updates, weights_version },
+                LearnerEvent::Stopped { updates, weights_version, .. } => return LearnerEnd { updates, weights_version },
+            }
+        }
+        end
     }
 }
 
@@ -190,7 +200,12 @@ mod tests {
         let stopped = LearnerEvent::Stopped { updates: 9, weights_version: 4, checkpoint: "c".into() };
         s.learner_said(&stopped);
         assert_eq!(s.learner.updates, 7, "only status lines move the status");
-        assert_eq!((s.final_updates(&[]), s.final_updates(&[stopped])), (7, 9));
+        let late_status = LearnerEvent::Status { updates: 8, updates_per_s: 1.0, weights_version: 3, batches: 10, reconnects: 0 };
+        let end = |updates, weights_version| LearnerEnd { updates, weights_version };
+        assert_eq!(s.learner_end(&[]), end(7, 3), "nothing printed late: the last status line");
+        assert_eq!(s.learner_end(std::slice::from_ref(&late_status)), end(8, 3), "a status line printed late");
+        assert_eq!(s.learner_end(&[late_status, stopped.clone()]), end(9, 4), "the stopped event: the version of the final publication");
+        assert_eq!(s.learner_end(&[stopped]), end(9, 4));
         assert!(s.wall_s() >= 30.0, "the clock continues the earlier sessions'");
         let m = s.milestone(12);
         assert_eq!((m.episode, m.updates, m.env_steps), (12, 7, 0));

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::config::StopCriteria;
-use super::episodes::{EpisodeRow, trailing_mean};
+use super::episodes::{EpisodeRow, averages};
 use super::status::Milestone;
 use crate::eval::EvalSummary;
 
@@ -41,8 +41,7 @@ pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria) -> bool {
     if rows.len() < stop.window {
         return false;
     }
-    let r = trailing_mean(rows.iter().map(|e| e.episode_return), stop.window);
-    let s = trailing_mean(rows.iter().map(|e| f64::from(e.steps)), stop.window);
+    let (r, s) = averages(rows, stop.window);
     stop.average_return.is_none_or(|g| r >= g) && stop.average_steps.is_none_or(|g| s >= g)
 }
 

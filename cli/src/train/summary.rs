@@ -25,6 +25,8 @@ pub struct Summary {
     pub episodes: u64,
     pub env_steps: u64,
     pub updates: u64,
+    /// The learner's last published weights version: that of its `stopped` event (after the
+    /// final publication), else of its newest status line.
     pub weights_version: u64,
     /// NaN (written as null) before the first episode.
     #[serde(deserialize_with = "nan_if_null")]
@@ -49,7 +51,8 @@ fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f6
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
-/// The learner's figures at the end of a session.
+/// The learner's figures at the end of a session (`Status::learner_end`).
+#[derive(Debug, PartialEq)]
 pub(crate) struct LearnerEnd {
     pub(crate) updates: u64,
     pub(crate) weights_version: u64,

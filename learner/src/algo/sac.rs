@@ -68,6 +68,50 @@ pub struct Sac {
     pub(super) host: (fused::Work, fused::Head),
 }
 
+/// What one SAC update measured, on either path (autograd in [`Sac::update`], the fused CPU
+/// update in [`super::fused`]); [`SacStep::into_stats`] holds the one list of SAC's scalars.
+#[derive(Debug)]
+pub(super) struct SacStep {
+    /// Σₖ Lₖ (eq. 6).
+    pub critic_loss: f64,
+    /// J_π (eq. 11).
+    pub actor_loss: f64,
+    /// L_α (eq. 10).
+    pub alpha_loss: f64,
+    /// Mean Q(s, a) of the replayed actions.
+    pub q_mean: f64,
+    /// Mean TD target y (eq. 9).
+    pub target_mean: f64,
+    /// α used in the update (the value before its step).
+    pub alpha: f64,
+    /// Mean ln π(ã|s) of the actor's fresh actions (the entropy is its negative).
+    pub mean_log_prob: f64,
+    /// The critics' gradient norm before clipping (only when clipping is on).
+    pub critic_grad_norm: Option<f64>,
+    /// The actor's gradient norm before clipping (only when clipping is on).
+    pub actor_grad_norm: Option<f64>,
+    /// Per row, |y − Q(s, a)| (the new priorities).
+    pub td_errors: Vec<f32>,
+}
+
+impl SacStep {
+    /// The update's report under the names of [`metric`].
+    pub(super) fn into_stats(self) -> UpdateStats {
+        let mut scalars = vec![
+            (metric::CRITIC_LOSS, self.critic_loss),
+            (metric::ACTOR_LOSS, self.actor_loss),
+            (metric::ALPHA_LOSS, self.alpha_loss),
+            (metric::Q_MEAN, self.q_mean),
+            (metric::TARGET_MEAN, self.target_mean),
+            (metric::ALPHA, self.alpha),
+            (metric::ENTROPY, -self.mean_log_prob),
+        ];
+        scalars.extend(self.critic_grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
+        scalars.extend(self.actor_grad_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
+        UpdateStats { scalars, td_errors: self.td_errors }
+    }
+}
+
 /// A sampled tanh-Gaussian action and its log-density.
 #[derive(Debug)]
 pub struct Sample {
@@ -176,18 +220,8 @@ impl Sac {
         self.target_critic.soft_update_from(&self.critic.net, self.c.cfg.tau);
         self.c.updates += 1;
 
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, loss),
-            (metric::ACTOR_LOSS, actor_loss_value),
-            (metric::ALPHA_LOSS, alpha_loss),
-            (metric::Q_MEAN, q_mean),
-            (metric::TARGET_MEAN, target_mean),
-            (metric::ALPHA, alpha),
-            (metric::ENTROPY, -mean_log_prob),
-        ];
-        scalars.extend(grad_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
-        scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
-        Ok(UpdateStats { scalars, td_errors })
+        Ok(SacStep { critic_loss: loss, actor_loss: actor_loss_value, alpha_loss, q_mean, target_mean, alpha, mean_log_prob, critic_grad_norm: grad_norm, actor_grad_norm: actor_norm, td_errors }
+            .into_stats())
     }
 
     pub(crate) fn act(&mut self, obs: &Tensor, explore: bool) -> Result<Tensor, LearnerError> {

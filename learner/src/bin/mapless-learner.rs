@@ -13,6 +13,7 @@
 //! `mapless-learner bench` measures updates per second (what `mapless bench learner` runs).
 //! The only executable that links libtorch.
 
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -28,6 +29,7 @@ use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve};
 use mapless_learner::{Device, TorchThreads, checkpoint, device};
 use mapless_net::metrics::{self, bench_report};
 use mapless_net::serve::Security;
+use mapless_proto::atomic_file::{Durability, write_file_atomically_with};
 use mapless_proto::weights_file::write_safetensors_file;
 
 #[derive(Parser)]
@@ -148,10 +150,7 @@ fn write_policy(driver: &Driver, path: &Option<PathBuf>) {
 /// Not fsynced: it changes about every second, on the update loop's thread, and is only a hint
 /// for a resume (the checkpoint holds the version that counts).
 fn write_version_file(path: &Path, version: u64) -> Result<()> {
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let mut tmp = tempfile::Builder::new().prefix(".").suffix(".tmp").permissions(std::os::unix::fs::PermissionsExt::from_mode(0o644)).tempfile_in(dir)?;
-    std::io::Write::write_all(&mut tmp, format!("{version}\n").as_bytes())?;
-    tmp.persist(path)?;
+    write_file_atomically_with(path, Durability::Unsynced, |f| f.write_all(format!("{version}\n").as_bytes()))?;
     Ok(())
 }
 

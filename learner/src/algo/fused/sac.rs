@@ -5,7 +5,7 @@
 
 use super::{Batch, critic_bodies, soft_update};
 use crate::LearnerError;
-use crate::algo::sac::{CRITICS, HALF_LN_2PI};
+use crate::algo::sac::{CRITICS, HALF_LN_2PI, SacStep};
 use crate::algo::{Sac, Trained, UpdateStats, metric};
 use crate::cpu::Body;
 use crate::lanes::Lanes;
@@ -128,7 +128,6 @@ impl Sac {
             }
         }
         let actor_norm = w.actor_step(&actor_body, &mut self.actor, b.obs, clip);
-        let (loss, q_mean, target_mean, critic_norm, td_errors) = (critic.loss, critic.q_mean, critic.target_mean, critic.grad_norm, critic.td_errors);
 
         // 4. α, eq. 10, and the targets: as the libtorch path.
         let mean_log_prob = head.log_prob.iter().map(|&v| f64::from(v)).sum::<f64>() / rows as f64;
@@ -140,18 +139,19 @@ impl Sac {
         soft_update(&mut self.target_critic, &self.critic.net, self.c.cfg.tau, &w.lanes);
         self.c.updates += 1;
 
-        let mut scalars = vec![
-            (metric::CRITIC_LOSS, loss),
-            (metric::ACTOR_LOSS, actor_loss),
-            (metric::ALPHA_LOSS, alpha_loss),
-            (metric::Q_MEAN, q_mean),
-            (metric::TARGET_MEAN, target_mean),
-            (metric::ALPHA, alpha),
-            (metric::ENTROPY, -mean_log_prob),
-        ];
-        scalars.extend(critic_norm.map(|n| (metric::CRITIC_GRAD_NORM, n)));
-        scalars.extend(actor_norm.map(|n| (metric::ACTOR_GRAD_NORM, n)));
         self.host.0.noise = eps;
-        Ok(UpdateStats { scalars, td_errors })
+        Ok(SacStep {
+            critic_loss: critic.loss,
+            actor_loss,
+            alpha_loss,
+            q_mean: critic.q_mean,
+            target_mean: critic.target_mean,
+            alpha,
+            mean_log_prob,
+            critic_grad_norm: critic.grad_norm,
+            actor_grad_norm: actor_norm,
+            td_errors: critic.td_errors,
+        }
+        .into_stats())
     }
 }
