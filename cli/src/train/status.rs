@@ -9,7 +9,13 @@ use mapless_learner_config::LearnerEvent;
 use mapless_proto::v1::ServerInfoResponse;
 use serde::{Deserialize, Serialize};
 
-use super::summary::LearnerEnd;
+/// The learner's figures at the end of a session ([`Status::learner_end`]): from its
+/// `stopped` event when it printed one, else from its newest status line.
+#[derive(Debug, PartialEq)]
+pub(crate) struct LearnerEnd {
+    pub(crate) updates: u64,
+    pub(crate) weights_version: u64,
+}
 
 /// The newest `LearnerEvent::Status` the learner printed.
 #[derive(Default, Clone, Debug, PartialEq)]

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::config::TrainConfig;
 use super::episodes::Episodes;
 use super::folder::write_atomic;
-use super::status::{Milestone, Rates};
+use super::status::{LearnerEnd, Milestone, Rates};
 use super::stop::Outcome;
 use crate::eval::EvalSummary;
 use crate::protocol;
@@ -49,13 +49,6 @@ pub struct Summary {
 /// serde_json writes a non-finite f64 as null; read it back as NaN.
 fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<f64, D::Error> {
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
-}
-
-/// The learner's figures at the end of a session (`Status::learner_end`).
-#[derive(Debug, PartialEq)]
-pub(crate) struct LearnerEnd {
-    pub(crate) updates: u64,
-    pub(crate) weights_version: u64,
 }
 
 /// What a session ended with, besides the episodes.
