@@ -17,7 +17,9 @@ const CA_CELL_M: f64 = 1.0;
 const FINE: usize = 4;
 
 pub(super) fn cave(rng: &mut Pcg64Mcg, size: f64, name: &str) -> Result<Map> {
+    // Whole CA cells: the world's side is n cells (the drawn size rounded to a cell).
     let n = (size / CA_CELL_M).round() as usize;
+    let size = n as f64 * CA_CELL_M;
     let idx = |i: usize, j: usize| j * n + i;
     let border = |i: usize, j: usize| i == 0 || j == 0 || i + 1 == n || j + 1 == n;
     let fill = rng.random_range(0.42..0.47);
@@ -105,8 +107,6 @@ fn fill_unreachable(map: Map) -> Map {
         return map;
     }
     let (w, h) = (grid.width, grid.height);
-    // The lattice and the grid share cells (both 0.25 m from the same corner).
-    debug_assert!((space.cell_m - grid.resolution_m).abs() < 1e-12 && space.width == w && space.height == h);
     let reach = ((DRIVE_CLEARANCE_M + grid.resolution_m) / grid.resolution_m).ceil() as isize;
     let mut near = vec![false; w * h];
     for j in 0..h {

@@ -172,7 +172,7 @@ pub fn generate(family: Family, seed: u64) -> Result<Map> {
         let space = DrivableSpace::of(&map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
         if space.is_connected() && space.share() >= family.min_drivable_share() {
             let mut map = map;
-            map.description = format!("generated {family} world, seed {seed}, {size} m x {size} m ({}); draw {}", family.describe(), draw + 1);
+            map.description = format!("generated {family} world, seed {seed}, {} m x {} m ({}); draw {}", map.bounds.width(), map.bounds.height(), family.describe(), draw + 1);
             return Ok(map);
         }
     }
