@@ -203,9 +203,11 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
     };
     if let Some(d) = out_dir {
         std::fs::write(d.join("eval.json"), serde_json::to_string_pretty(&summary)?)?;
+        // A long list (`--family F --seeds A..B`) is cut short in the title; eval.json keeps it.
+        let name: String = if summary.map.chars().count() > 90 { summary.map.chars().take(89).chain(['…']).collect() } else { summary.map.clone() };
         let title = format!(
             "{} — policy v{}, {} episodes{}",
-            summary.map,
+            name,
             summary.policy_version,
             episodes,
             if episodes as usize > SHEET_EPISODES { format!(" (the first {SHEET_EPISODES})") } else { String::new() }
