@@ -649,7 +649,7 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     );
     let _ = writeln!(
         page,
-        "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block, so the per-step return of eq. (1) is bounded as the paper's Table III implies. env2 and env3 are not yet held to Tables IV–V that way: `mapless maps stats env2` finds open lanes where every beam reads 12 m, so env2's per-step returns and EQS can run above the paper's."
+        "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block and env2 a walled 40 m square of four lanes round medians, so a car that stands still earns less per step of eq. (1) than the paper's agents (Tables III and IV). env3 is not yet held to Table V that way: `mapless maps stats env3` finds poses where every beam reads 12 m."
     );
     let _ = writeln!(
         page,

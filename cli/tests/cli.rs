@@ -116,11 +116,13 @@ fn rasterized_map_reloads_as_a_ros_map_with_the_same_obstacles() {
     let ros = mapless_sim::Map::load(&d.join("env2.yaml")).unwrap();
     let vec = mapless_sim::Map::builtin("env2").unwrap();
     assert_eq!(ros.bounds, vec.bounds);
-    // The central disc (r = 1.5 at the origin) is blocked, open floor is free in both.
-    assert!(!ros.is_free(0.0, 0.0) && !vec.is_free(0.0, 0.0));
+    // A round median end (r = 1.2 at (15.4, 15)) is blocked, open floor is free in both.
+    assert!(!ros.is_free(15.4, 15.0) && !vec.is_free(15.4, 15.0));
     assert!(ros.is_free(-18.0, 18.0) && vec.is_free(-18.0, 18.0));
-    // A ray from (−18, 0) east meets the box at x = −15 in both (to within a pixel).
-    let (a, b) = (ros.scene(0.0, 2.0).cast_ray(-18.0, 0.0, 1.0, 0.0, 12.0), vec.scene(0.0, 2.0).cast_ray(-18.0, 0.0, 1.0, 0.0, 12.0));
+    // A ray from (−18, −5) east meets the round end of lane 2's median at x = −16.6 in both (to
+    // within a pixel).
+    let (a, b) = (ros.scene(0.0, 2.0).cast_ray(-18.0, -5.0, 1.0, 0.0, 12.0), vec.scene(0.0, 2.0).cast_ray(-18.0, -5.0, 1.0, 0.0, 12.0));
+    assert!((b - 1.4).abs() < 1e-3, "{b}");
     assert!((a - b).abs() <= 0.11, "{a} vs {b}");
 }
 

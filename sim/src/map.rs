@@ -579,7 +579,7 @@ mod tests {
         assert_eq!(env1.obstacles.len(), 9); // a central block and eight stubs (sim/tests/paper_worlds.rs checks what they imply)
         let env2 = Map::builtin("env2").unwrap();
         assert_eq!((env2.bounds.width(), env2.bounds.height()), (40.0, 40.0));
-        assert!((15..=25).contains(&env2.obstacles.len()), "{}", env2.obstacles.len());
+        assert_eq!(env2.obstacles.len(), 43); // walls, medians, blocks, round ends (sim/tests/paper_worlds.rs checks what they imply)
         let env3 = Map::builtin("env3").unwrap();
         assert!(!env3.obstacles.is_empty());
         let out = Map::builtin("outdoor20").unwrap();
@@ -592,9 +592,11 @@ mod tests {
     #[test]
     fn free_space_excludes_solid_obstacles_and_outside() {
         let env2 = Map::builtin("env2").unwrap();
-        assert!(!env2.is_free(0.0, 0.0)); // inside the central disc
-        assert!(!env2.is_free(-12.0, 12.0)); // inside a box
+        assert!(!env2.is_free(0.0, 0.0)); // inside the interior wall at y = 0
+        assert!(!env2.is_free(15.4, 15.0)); // inside a round median end
+        assert!(!env2.is_free(-5.5, -14.0)); // inside a block
         assert!(env2.is_free(-18.0, 18.0));
+        assert!(env2.is_free(-10.5, 0.0)); // in a doorway
         assert!(!env2.is_free(25.0, 0.0));
     }
 

@@ -126,7 +126,18 @@ pub const ENV1_TRAJECTORY_STEPS: u32 = 1000;
 /// over average steps, min and max over the three algorithms (DDPG 318/865 = 0.368,
 /// TD3 435/1000 = 0.435, SAC 320/1000 = 0.320).
 pub fn env1_per_step_return_band() -> (f64, f64) {
-    let r: Vec<f64> = TABLE_III.iter().map(|t| t.average_return / t.average_steps).collect();
+    per_step_band(&TABLE_III)
+}
+
+/// The per-step return band of the paper's env2 agents (not converged): Table IV's average
+/// return over average steps, min and max over the three algorithms (DDPG 125/530 = 0.236,
+/// TD3 230/715 = 0.322, SAC 210/1050 = 0.200).
+pub fn env2_per_step_return_band() -> (f64, f64) {
+    per_step_band(&TABLE_IV)
+}
+
+fn per_step_band(rows: &[TrainingRow]) -> (f64, f64) {
+    let r: Vec<f64> = rows.iter().map(|t| t.average_return / t.average_steps).collect();
     (r.iter().copied().fold(f64::INFINITY, f64::min), r.iter().copied().fold(f64::NEG_INFINITY, f64::max))
 }
 
@@ -146,5 +157,8 @@ mod tests {
         }
         let (lo, hi) = env1_per_step_return_band();
         assert!((lo - 0.320).abs() < 1e-9 && (hi - 0.435).abs() < 1e-9);
+        // Table IV: SAC's 210 / 1050 is the lowest, TD3's 230 / 715 the highest.
+        let (lo, hi) = env2_per_step_return_band();
+        assert!((lo - 0.200).abs() < 1e-9 && (hi - 230.0 / 715.0).abs() < 1e-9 && (hi - 0.322).abs() < 5e-4);
     }
 }

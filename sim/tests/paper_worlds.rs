@@ -5,7 +5,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use mapless_sim::bounds::reward_bounds;
-use mapless_sim::paper::{TABLE_III, TABLE_V, env1_per_step_return_band};
+use mapless_sim::map::Obstacle;
+use mapless_sim::paper::{TABLE_III, TABLE_V, env1_per_step_return_band, env2_per_step_return_band};
+use mapless_sim::worlds::{DRIVABLE_CELL_M, DRIVE_CLEARANCE_M, DrivableSpace};
 use mapless_sim::{Env, EnvConfig, Map, VehicleConfig, World, baseline};
 
 fn world(map: Map) -> Arc<World> {
@@ -74,6 +76,102 @@ fn a_scripted_driver_at_the_papers_speeds_earns_the_papers_per_step_rewards_on_e
         assert!((lo..=hi).contains(&per_step), "{} at {speed:.4} m/step: {per_step:.3} per step", row.algorithm);
         assert!(collisions <= 1, "{collisions} collisions");
     }
+}
+
+#[test]
+fn env2_is_the_papers_40_m_walled_space_with_interior_walls_and_obstacles() {
+    let m = Map::builtin("env2").unwrap();
+    assert_eq!((m.bounds.width(), m.bounds.height()), (40.0, 40.0));
+    assert!(m.boundary_walls);
+    // Interior walls: at least six stretches 7 m or longer and at most 0.5 m thick (three walls,
+    // each cut by two doorways); and the paper's "various obstacles", boxes and round ones.
+    let walls = m
+        .obstacles
+        .iter()
+        .filter(|o| match o {
+            Obstacle::Box { size, .. } => size[0].max(size[1]) >= 7.0 && size[0].min(size[1]) <= 0.5,
+            Obstacle::Wall { from, to, .. } => (to[0] - from[0]).hypot(to[1] - from[1]) >= 7.0,
+            _ => false,
+        })
+        .count();
+    assert!(walls >= 6, "{walls} interior wall stretches");
+    assert!(m.obstacles.iter().any(|o| matches!(o, Obstacle::Circle { .. })));
+    assert!(m.obstacles.iter().filter(|o| matches!(o, Obstacle::Box { size, .. } if size[0].min(size[1]) > 0.5)).count() >= 4);
+    // One drivable piece, and every start the sampler draws lies in it.
+    let space = DrivableSpace::of(&m, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
+    assert!(space.is_connected(), "pieces {:?}", space.piece_sizes);
+    let w = world(m.clone());
+    let mut env = Env::new(Arc::clone(&w), 5);
+    let mut obs = vec![0.0; w.obs_dim()];
+    for _ in 0..500 {
+        env.reset(&mut obs).unwrap();
+        let p = env.pose();
+        assert_eq!(space.piece_at(p.x_m, p.y_m), Some(0), "start {p:?}");
+    }
+    // Not cramped: a 2.5 m disc (the car's tightest circle is 1.6 m across) gets from every
+    // lane to every other: the doorways and the passages past the blocks are wider than that.
+    let wide = DrivableSpace::of(&m, 1.25, DRIVABLE_CELL_M);
+    assert!(wide.is_connected(), "pieces {:?}", wide.piece_sizes);
+    for y in [-15.0, -5.0, 5.0, 15.0] {
+        assert_eq!(wide.piece_at(-18.3, y), Some(0), "lane at y = {y}");
+    }
+}
+
+#[test]
+fn standing_still_cannot_earn_the_papers_returns_on_env2_and_driving_is_bounded() {
+    let (band_lo, band_hi) = env2_per_step_return_band();
+    // A coarse lattice here (the docs' figure, 0.183 and 0.558, is from 0.1 m × 72 headings).
+    let env2 = Map::builtin("env2").unwrap();
+    let b = reward_bounds(&world(env2.clone()), 0.25, 36);
+    assert!(b.standing_still_per_step < band_lo, "a parked car earns {:.3} per step, the paper's agents {band_lo}", b.standing_still_per_step);
+    // Driving pays at most 0.56 per step; the paper's best (TD3, 0.322) is 58 % of it.
+    assert!(b.per_step < 0.57 && b.per_step > band_hi, "{b:?}");
+    // With plain median bars where the blocks face the doorways, a car looks through a doorway
+    // and along the next lane, and standing still pays more than SAC's 0.200 again.
+    let text: String = include_str!("../maps/env2.yaml")
+        .lines()
+        .map(|l| match l.find("center: [").filter(|_| l.contains("size: [5, 2.3]")) {
+            Some(i) => {
+                let c: Vec<f64> = l[i + 9..].split(']').next().unwrap().split(',').map(|v| v.trim().parse().unwrap()).collect();
+                format!("  - box: {{ center: [{}, {}], size: [5, 0.8] }}\n", c[0], 10.0 * (c[1] / 10.0).floor() + 5.0)
+            }
+            None => format!("{l}\n"),
+        })
+        .collect();
+    let flat = Map::from_vector_yaml(&text, Path::new("env2-without-blocks.yaml")).unwrap();
+    assert_eq!(flat.obstacles.len(), env2.obstacles.len());
+    assert!(!flat.is_free(-5.5, -15.0) && flat.is_free(-5.5, -14.0), "a bar, not a block");
+    let b = reward_bounds(&world(flat), 0.25, 36);
+    assert!(b.standing_still_per_step > band_lo, "{b:?}");
+}
+
+#[test]
+fn a_scripted_driver_at_the_papers_speeds_earns_about_the_papers_per_step_rewards_on_env2() {
+    // The env2 agents' speeds: Table V's TD3-env2 and SAC-env2 trajectories drive 0.0499 and
+    // 0.0339 m per step (the circling DDPG-env2 row's speed is not usable), the fastest and
+    // slowest of the paper. Table IV's agents earned 0.200–0.322 per step.
+    let w = world(Map::builtin("env2").unwrap());
+    let (lo, hi) = env2_per_step_return_band();
+    let speed_term = |m_per_step: f64| w.cfg.reward.speed_weight * (m_per_step / w.cfg.vehicle.dt_s).powi(2);
+    let (sac, td3) = (&TABLE_V[5], &TABLE_V[4]);
+    assert_eq!((sac.algorithm, sac.trained_on, td3.algorithm, td3.trained_on), ("sac", "env2", "td3", "env2"));
+    let at = |row: &mapless_sim::paper::EvalRow| {
+        let speed = row.distance_m() / f64::from(row.steps);
+        let (per_step, collisions) = scripted(&w, speed, 12);
+        assert!(collisions <= 1, "{} at {speed:.4} m/step: {collisions} collisions", row.algorithm);
+        // What the world pays beyond eq. (1)'s speed term, net of the steering cost, is small:
+        // the car is always within a few metres of something (the open field paid 0.15–0.17).
+        let beyond = per_step - speed_term(speed);
+        assert!((0.0..0.04).contains(&beyond), "{} at {speed:.4} m/step: {per_step:.3} per step, {beyond:.3} beyond the speed term", row.algorithm);
+        per_step
+    };
+    // At SAC's speed: at the band's bottom (inside it, or less than 0.02 below).
+    let slow = at(sac);
+    assert!((lo - 0.02..=hi).contains(&slow), "SAC-env2's speed: {slow:.3} per step, band {lo:.3}–{hi:.3}");
+    // At TD3's speed eq. (1)'s speed term alone, 0.374, is above the band's top: the driver earns
+    // that and little more (the paper's unconverged agents drove slower, or turned more).
+    let fast = at(td3);
+    assert!(speed_term(td3.distance_m() / f64::from(td3.steps)) > hi && (hi..hi + 0.1).contains(&fast), "TD3-env2's speed: {fast:.3} per step, band {lo:.3}–{hi:.3}");
 }
 
 #[test]
