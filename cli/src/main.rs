@@ -29,6 +29,7 @@ use mapless_sim::{Env, EnvConfig, Map, RaycastMethod, RewardConfig, World};
 use rand::{Rng, SeedableRng};
 
 mod eval;
+mod policies;
 mod protocol;
 mod reproduce;
 mod signals;
@@ -66,6 +67,12 @@ enum Cmd {
     /// Evaluate a run's policy (deterministic) on any map: steps, EQS, EES, distance, shaded
     /// time per episode and their means; a trajectory picture per episode.
     Eval(EvalArgs),
+    /// Trained policies shipped in the repository (`policies/`), each with a model card:
+    /// list them, check that their recorded figures still hold, or ship a finished run.
+    Policies {
+        #[command(subcommand)]
+        cmd: PoliciesCmd,
+    },
     /// Measure throughput.
     Bench {
         #[command(subcommand)]
@@ -79,6 +86,32 @@ enum Cmd {
     Analyze {
         #[command(subcommand)]
         cmd: AnalyzeCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum PoliciesCmd {
+    /// The shipped policies: what each was trained on and how it does on env3.
+    List,
+    /// Rerun every shipped policy's short check evaluations (or those named) and compare them
+    /// with its card; fails on any difference.
+    Check { names: Vec<String> },
+    /// Copy a finished run's policy into `policies/NAME`, evaluate it (its training map and
+    /// env3, 10 episodes each; env3 and `--eval` maps at 3,000 steps) and write its model card.
+    Ship {
+        #[arg(long)]
+        run: PathBuf,
+        #[arg(long)]
+        name: String,
+        /// More maps to evaluate on (names, files, `gen:FAMILY` for held-out worlds).
+        #[arg(long = "eval", num_args = 1..)]
+        eval: Vec<String>,
+        /// The training command for the card [default: `mapless train --preset P --set seed=S`].
+        #[arg(long)]
+        command: Option<String>,
+        /// Replace an existing `policies/NAME`.
+        #[arg(long)]
+        force: bool,
     },
 }
 
@@ -141,7 +174,7 @@ enum MapsCmd {
     },
 }
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, Debug, ValueEnum)]
 enum Driver {
     /// Hand-written reactive driver (turn towards open space); not learned.
     Wander,
@@ -155,16 +188,21 @@ struct RolloutArgs {
     #[arg(long, default_value = "env1")]
     map: String,
     /// Who drives.
-    #[arg(long, value_enum, default_value = "wander")]
+    #[arg(long, value_enum, default_value = "wander", conflicts_with = "policy")]
     driver: Driver,
+    /// A shipped policy drives (`mapless policies list`; or a run folder), deterministic, with
+    /// the sensor and reward it was trained with.
+    #[arg(long, conflicts_with = "reward")]
+    policy: Option<String>,
     /// Step limit (the episode may end earlier in a collision).
     #[arg(long, default_value_t = 1000)]
     steps: u32,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Reward preset: exploration (eq. 1) or search_and_rescue (eq. 2).
-    #[arg(long, default_value = "exploration")]
-    reward: String,
+    /// Reward preset: exploration (eq. 1) or search_and_rescue (eq. 2) [default: exploration,
+    /// or the policy's].
+    #[arg(long)]
+    reward: Option<String>,
     /// Output folder: trajectory.png and episode.json.
     #[arg(long, default_value = "runs/rollout")]
     out: PathBuf,
@@ -176,8 +214,11 @@ struct RolloutArgs {
 #[derive(clap::Args)]
 struct EvalArgs {
     /// Run folder (its config.yaml and policy.safetensors).
+    #[arg(long, required_unless_present = "policy", conflicts_with = "policy")]
+    run: Option<PathBuf>,
+    /// A shipped policy by name (`mapless policies list`) instead of a run.
     #[arg(long)]
-    run: PathBuf,
+    policy: Option<String>,
     /// Map [default: the run's training map]: a name, a file, gen:FAMILY:SEED, or a list
     /// joined by `+` (episodes take the items in turn; gen:FAMILY: its held-out worlds).
     #[arg(long, conflicts_with_all = ["maps", "family"])]
@@ -293,6 +334,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Rollout(a) => rollout(a),
         Cmd::Train(a) => train::train(&a, log_json),
         Cmd::Eval(a) => eval_cmd(&a),
+        Cmd::Policies { cmd } => policies_cmd(cmd),
         Cmd::Reproduce(a) => reproduce::reproduce(&a),
         Cmd::Analyze { cmd: AnalyzeCmd::Eqs { trajectories, seed, out, json } } => analyze_eqs(trajectories, seed, out.as_deref(), json),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
@@ -302,8 +344,54 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
+fn policies_cmd(cmd: PoliciesCmd) -> Result<()> {
+    let dir = policies::policies_dir();
+    match cmd {
+        PoliciesCmd::List => {
+            let cards = policies::list(&dir)?;
+            if cards.is_empty() {
+                println!("no shipped policies in {}", dir.display());
+                return Ok(());
+            }
+            println!("{:<16} {:<5} {:<34} {:>7} {:>13} {:>8}", "name", "algo", "trained on", "train s", "env3 steps", "env3 EQS");
+            for c in &cards {
+                let env3 = c.evaluations.iter().find(|e| e.map == "env3" && !e.check);
+                let (steps, eqs) = env3.map_or(("–".to_owned(), "–".to_owned()), |e| (format!("{:.0} ({}/{})", e.mean_steps, e.collisions, e.episodes), format!("{:.1}", e.mean_eqs)));
+                println!("{:<16} {:<5} {:<34} {:>7.0} {:>13} {:>8}", c.name, c.algorithm, c.trained_on, c.wall_s, steps, eqs);
+            }
+            println!("(env3 steps: mean of the card's 3,000-step episodes, (collisions/episodes); cards: {}/NAME/card.md)", dir.display());
+        }
+        PoliciesCmd::Check { names } => {
+            let names = if names.is_empty() { policies::list(&dir)?.into_iter().map(|c| c.name).collect() } else { names };
+            if names.is_empty() {
+                bail!("no shipped policies in {}", dir.display());
+            }
+            let mut failed = Vec::new();
+            for n in &names {
+                let d = policies::check(&policies::resolve(n)?)?;
+                println!("{n}: {}", if d.is_empty() { "holds".to_owned() } else { d.join("; ") });
+                failed.extend(d);
+            }
+            if !failed.is_empty() {
+                bail!("{} recorded figure(s) no longer hold", failed.len());
+            }
+        }
+        PoliciesCmd::Ship { run, name, eval, command, force } => {
+            let card = policies::ship(&run, &name, &dir, &eval, command.as_deref(), force)?;
+            policies::write_index(&dir)?;
+            println!("shipped {} into {} (card.md, card.json, sheet-env3.png)", card.name, dir.join(&card.name).display());
+        }
+    }
+    Ok(())
+}
+
 fn eval_cmd(a: &EvalArgs) -> Result<()> {
-    let cfg = train::read_run_config(&a.run)?;
+    let run = match (&a.run, &a.policy) {
+        (Some(r), _) => r.clone(),
+        (None, Some(p)) => policies::resolve(p)?,
+        (None, None) => bail!("--run or --policy"),
+    };
+    let cfg = train::read_run_config(&run)?;
     let mut env = cfg.env.clone();
     if let Some(m) = a.max_steps {
         env.episode.max_steps = m;
@@ -321,8 +409,12 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
         (Some(f), Some(s)) => format!("{f}-{}-{}", s.start, s.end),
         _ => map.replace(['/', '.', '+', ':'], "_"),
     };
-    let out = a.out.clone().unwrap_or_else(|| a.run.join(format!("eval-{label}")));
-    let s = eval::evaluate(&a.run.join("policy.safetensors"), &map, &env, episodes, a.seed, Some(&out))?;
+    // A shipped policy's folder is part of the checkout: its pictures go under runs/.
+    let out = a.out.clone().unwrap_or_else(|| match &a.policy {
+        Some(p) => PathBuf::from("runs").join(format!("eval-{p}-{label}")),
+        None => run.join(format!("eval-{label}")),
+    });
+    let s = eval::evaluate(&run.join("policy.safetensors"), &map, &env, episodes, a.seed, Some(&out))?;
     if a.json {
         println!("{}", serde_json::to_string(&s)?);
     } else {
@@ -445,21 +537,41 @@ fn episode_footer(s: &mapless_sim::EpisodeSummary, shaded_map: bool) -> String {
 
 fn rollout(a: RolloutArgs) -> Result<()> {
     let map = mapless_sim::worlds::resolve(&a.map)?;
-    let mut cfg = EnvConfig { reward: RewardConfig::preset(&a.reward)?, ..EnvConfig::default() };
+    let mut policy = None;
+    let mut cfg = match &a.policy {
+        Some(name) => {
+            let dir = policies::resolve(name)?;
+            let file = dir.join("policy.safetensors");
+            let snapshot = mapless_proto::weights_file::read_safetensors_file(&file).with_context(|| format!("reading the policy {}", file.display()))?;
+            policy = Some(mapless_actor::Policy::from_snapshot(&snapshot).with_context(|| format!("loading the policy {}", file.display()))?);
+            train::read_run_config(&dir)?.env
+        }
+        None => EnvConfig { reward: RewardConfig::preset(a.reward.as_deref().unwrap_or("exploration"))?, ..EnvConfig::default() },
+    };
     cfg.episode.max_steps = a.steps;
     let world = World::new(map, cfg)?;
     let mut env = Env::new(Arc::clone(&world), a.seed);
     env.record_trajectory(true);
     let mut obs = vec![0.0; world.obs_dim()];
+    if let Some(p) = &policy
+        && p.obs_dim() != world.obs_dim()
+    {
+        bail!("the policy reads {} observation values, this map's sensor gives {}", p.obs_dim(), world.obs_dim());
+    }
     env.reset(&mut obs)?;
     let angles = world.cfg.sensor.beam_angles_rad();
     let mut rng = rand_pcg::Pcg64Mcg::seed_from_u64(a.seed ^ 0x5EED);
     let mut last = None;
     tracing::info!(map = %world.map.name, steps = a.steps, seed = a.seed, "rollout started");
     for _ in 0..a.steps {
-        let action = match a.driver {
-            Driver::Wander => mapless_sim::baseline::wander(env.ranges_m(), &angles, world.cfg.sensor.max_range_m),
-            Driver::Random => [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)],
+        let action = match (&mut policy, a.driver) {
+            (Some(p), _) => {
+                let mut act = [0.0f32; 2];
+                p.act(&obs, mapless_actor::ActMode::Deterministic, &mut rng, &mut act)?;
+                act
+            }
+            (None, Driver::Wander) => mapless_sim::baseline::wander(env.ranges_m(), &angles, world.cfg.sensor.max_range_m),
+            (None, Driver::Random) => [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)],
         };
         let o = env.step(action, &mut obs)?;
         last = Some(o);
@@ -470,7 +582,8 @@ fn rollout(a: RolloutArgs) -> Result<()> {
     let s = env.summary(last);
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let png = a.out.join("trajectory.png");
-    let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} — rollout, seed {}", world.map.name, a.seed))?;
+    let who = a.policy.as_deref().map_or_else(|| format!("{:?}", a.driver).to_lowercase(), |p| format!("policy {p}"));
+    let mut c = Canvas::map(&world.map, default_px_per_m(&world.map), &format!("{} — rollout ({who}), seed {}", world.map.name, a.seed))?;
     let traj = env.trajectory().unwrap_or(&[]);
     c.episode(&world.map, traj, env.tracker(), world.cfg.exploration.ring_width_m, s.terminal)?;
     c.footer(&episode_footer(&s, !world.map.shaded.is_empty()))?;

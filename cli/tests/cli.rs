@@ -169,3 +169,57 @@ fn maps_stats_and_analyze_eqs_print_json() {
     assert!(readings.windows(2).all(|w| w[0]["rows_fitting"].as_u64() >= w[1]["rows_fitting"].as_u64()));
     assert!(mapless(&["analyze", "eqs", "--trajectories", "0"]).status.code() != Some(0));
 }
+
+/// The policies shipped in the repository's `policies/` (each a folder with its card).
+fn shipped_policies() -> Vec<String> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies");
+    let mut names: Vec<String> =
+        std::fs::read_dir(&dir).map(|r| r.filter_map(Result::ok).filter(|e| e.path().join("card.json").is_file()).map(|e| e.file_name().to_string_lossy().into_owned()).collect()).unwrap_or_default();
+    names.sort();
+    names
+}
+
+#[test]
+fn every_shipped_policy_still_scores_what_its_card_records() {
+    // The paper's SAC on env1 and the explore policy at least; `mapless policies check` reruns
+    // each card's short deterministic evaluations and fails on any difference.
+    let names = shipped_policies();
+    assert!(names.iter().any(|n| n == "env1-sac"), "policies/ ships env1-sac (found {names:?})");
+    let o = mapless(&["policies", "check"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{out}\n{}", String::from_utf8_lossy(&o.stderr));
+    for n in &names {
+        assert!(out.contains(&format!("{n}: holds")), "{n} not checked: {out}");
+    }
+}
+
+#[test]
+fn a_shipped_policy_evaluates_and_drives_by_name_and_a_changed_card_fails_its_check() {
+    let d = tmp("policies");
+    let o = mapless(&["eval", "--policy", "env1-sac", "--map", "env3", "--episodes", "2", "--max-steps", "300", "--json", "--out", d.join("eval").to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["episodes"].as_array().unwrap().len(), 2);
+    png_size(&d.join("eval/sheet.png"));
+    let o = mapless(&["rollout", "--policy", "env1-sac", "--map", "env1", "--steps", "200", "--json", "--out", d.join("rollout").to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(v["distance_m"].as_f64().unwrap() > 1.0, "the policy drives: {v}");
+    // A card whose figures the policy no longer reaches fails `policies check`.
+    let shelf = d.join("shelf/env1-sac");
+    std::fs::create_dir_all(&shelf).unwrap();
+    for f in ["config.yaml", "policy.safetensors", "card.json"] {
+        std::fs::copy(Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/env1-sac").join(f), shelf.join(f)).unwrap();
+    }
+    let mut card: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(shelf.join("card.json")).unwrap()).unwrap();
+    let check = card["evaluations"].as_array_mut().unwrap().iter_mut().find(|e| e["check"] == true).unwrap();
+    check["mean_steps"] = serde_json::json!(check["mean_steps"].as_f64().unwrap() + 1.0);
+    std::fs::write(shelf.join("card.json"), serde_json::to_string(&card).unwrap()).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_mapless")).args(["policies", "check"]).env("MAPLESS_POLICIES", d.join("shelf")).env("RUST_LOG", "warn").output().unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stdout);
+    assert!(err.contains("env1-sac on") && err.contains("mean steps"), "{err}");
+    let o = mapless(&["eval", "--policy", "no-such-policy", "--map", "env3"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no shipped policy \"no-such-policy\""));
+}

@@ -57,8 +57,13 @@ pub(crate) struct Evaluations {
     /// `eval.map`, or the training map.
     map: String,
     env: EnvConfig,
-    /// The evaluation seed (the run's, offset): every evaluation of a run meets the same starts.
+    /// The seed of the evaluations while training and of the stop criterion (the run's,
+    /// offset): they all meet the same starts, so their figures compare along the run.
     seed: u64,
+    /// The final evaluation's seed: starts that no evaluation during training met. The stop
+    /// criterion selects the first policy that passes on `seed`'s starts; judged again on those
+    /// it would pass by construction, so the final figures come from fresh starts.
+    final_seed: u64,
     settings: EvalSettings,
     /// Episodes of an evaluation of the stop criterion.
     gate_episodes: u32,
@@ -76,6 +81,7 @@ impl Evaluations {
             map: cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone()),
             env: cfg.env.clone(),
             seed: cfg.seed.wrapping_add(1_000_003),
+            final_seed: cfg.seed.wrapping_add(2_000_003),
             settings: cfg.eval.clone(),
             gate_episodes: cfg.stop.eval_episodes,
             progress: None,
@@ -204,8 +210,8 @@ impl Evaluations {
             }
         }
         let map = &self.map;
-        eprintln!("evaluating the final policy: {} episodes on {map} (deterministic) ...", self.settings.episodes);
-        match eval::evaluate(&self.policy(), map, &self.env, self.settings.episodes, self.seed, Some(&self.run.join("eval"))) {
+        eprintln!("evaluating the final policy: {} episodes on {map} (deterministic, starts that no evaluation during training met) ...", self.settings.episodes);
+        match eval::evaluate(&self.policy(), map, &self.env, self.settings.episodes, self.final_seed, Some(&self.run.join("eval"))) {
             Ok(s) => {
                 eprintln!("  {}", s.one_line());
                 append_eval(&self.run, status.wall_s(), "final", &s)?;
