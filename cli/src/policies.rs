@@ -117,7 +117,7 @@ pub fn policies_dir() -> PathBuf {
         return PathBuf::from(d);
     }
     let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("policies");
-    if repo.is_dir() { repo } else { PathBuf::from("policies") }
+    if repo.is_dir() { repo.canonicalize().unwrap_or(repo) } else { PathBuf::from("policies") }
 }
 
 /// A shipped policy's folder by name (or a path to such a folder).
