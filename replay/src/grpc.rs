@@ -7,8 +7,11 @@
 //!    (the next batch is read only after the previous one is acked: a rate-limited table stops
 //!     reading, and HTTP/2 flow control then blocks the client — the limiter is the one throttle)
 //!
-//!  Sample (server stream), one blocking producer per stream:
-//!    reserve slot in [minibatches, depth prefetch] ─► Table::sample_as (polled) ─► send ─► client
+//!  Sample (server stream), one async task per stream, at most `max_sample_streams` open
+//!  (beyond that: RESOURCE_EXHAUSTED, counted in `replay_sample_streams_refused_total`):
+//!    reserve slot in [minibatches, depth prefetch] ─► spawn_blocking(Table::try_sample_as) ─► send ─► client
+//!                                                      │ limiter says no
+//!                                                      └► await Table::changed / deadline / client gone ─► retry
 //!    (float columns packed, or as `*_f32le` bytes when the request sets float_columns_as_bytes:
 //!     then encoding and the client's decoding are a memcpy per column)
 //!    (a slot is reserved before drawing, so at most `prefetch` drawn minibatches wait unread)
@@ -19,6 +22,17 @@
 //! of [`POLL_INTERVAL`] and between slices check whether their peer went away or the server is
 //! stopping, so a vanished client releases its thread (and its actor's stream slot) within one
 //! slice instead of wedging until the limiter opens.
+//!
+//! Sample streams are the exception: they are long-lived and a learner's may sit behind the
+//! rate limiter for minutes, so they hold no blocking thread while they wait. Each draw is a
+//! short `spawn_blocking` of the non-waiting [`Table::try_sample_as`] (it still takes the table's
+//! lock, which an insert may hold while its journal writes, so not on a runtime worker); when
+//! the limiter says no, the stream's task awaits [`Table::changed`] (fired with the condvar),
+//! its deadline, its client going away or the server stopping. Tokio's blocking pool (512
+//! threads) therefore stays free for inserts, priority updates and persistence however many
+//! samplers wait. Open streams are still bounded ([`DEFAULT_MAX_SAMPLE_STREAMS`]): each holds
+//! up to `prefetch` drawn minibatches in memory, and a client that keeps opening streams gets
+//! a clear RESOURCE_EXHAUSTED rather than a slow server.
 
 use std::collections::HashSet;
 use std::sync::{Arc, Mutex};
@@ -27,7 +41,7 @@ use std::time::{Duration, Instant};
 use mapless_proto::v1::replay_service_server::ReplayService;
 use mapless_proto::v1::{InsertAck, PriorityUpdate, PriorityUpdateResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse, TransitionBatch};
 use mapless_proto::{FloatEncoding, MAX_ACTOR_ID_BYTES, MAX_MESSAGE_BYTES, check_protocol_version};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use tracing::{Instrument, debug, info, info_span, warn};
@@ -49,6 +63,12 @@ pub const ACK_CHANNEL_DEPTH: usize = 8;
 /// clamped (replay.proto: "values above the server's maximum (16 by default) are clamped").
 pub const DEFAULT_MAX_PREFETCH: u32 = 16;
 
+/// Sample streams open at once unless configured otherwise (`max_sample_streams` in the
+/// server's config); one more is refused with RESOURCE_EXHAUSTED. A learner opens one or a
+/// few, so 256 leaves room for many learners and evaluators while bounding what open streams
+/// can hold: each keeps up to `prefetch` drawn minibatches (16 × 8,192 rows at most) in memory.
+pub const DEFAULT_MAX_SAMPLE_STREAMS: u32 = 256;
+
 /// Most keys one `PriorityUpdate` may carry: what fits in one message at 16 bytes a key
 /// (8 for the key, 8 for its priority).
 pub const MAX_PRIORITY_KEYS: usize = MAX_MESSAGE_BYTES / 16;
@@ -62,6 +82,9 @@ pub struct ReplayGrpc {
     /// (replay.proto, Insert): a second one is refused with ABORTED.
     open_streams: Arc<Mutex<HashSet<String>>>,
     max_prefetch: u32,
+    /// One permit per open Sample stream; none left means RESOURCE_EXHAUSTED.
+    sample_streams: Arc<Semaphore>,
+    max_sample_streams: u32,
     /// Becomes true when the server stops: open streams end with UNAVAILABLE.
     stopping: Option<watch::Receiver<bool>>,
 }
@@ -69,7 +92,14 @@ pub struct ReplayGrpc {
 impl ReplayGrpc {
     /// A service over `table` that runs until it is dropped.
     pub fn new(table: Arc<Table>) -> ReplayGrpc {
-        ReplayGrpc { table, open_streams: Arc::default(), max_prefetch: DEFAULT_MAX_PREFETCH, stopping: None }
+        ReplayGrpc {
+            table,
+            open_streams: Arc::default(),
+            max_prefetch: DEFAULT_MAX_PREFETCH,
+            sample_streams: Arc::new(Semaphore::new(DEFAULT_MAX_SAMPLE_STREAMS as usize)),
+            max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS,
+            stopping: None,
+        }
     }
 
     /// Ends every open stream with UNAVAILABLE once `stopping` turns true (so a graceful
@@ -82,6 +112,14 @@ impl ReplayGrpc {
     /// Largest prefetch a Sample stream gets (≥ 1).
     pub fn with_max_prefetch(mut self, max_prefetch: u32) -> ReplayGrpc {
         self.max_prefetch = max_prefetch.max(1);
+        self
+    }
+
+    /// Most Sample streams open at once (≥ 1); one more is refused with RESOURCE_EXHAUSTED.
+    /// Set it before serving: streams already open keep their permits from the old limit.
+    pub fn with_max_sample_streams(mut self, max_sample_streams: u32) -> ReplayGrpc {
+        self.max_sample_streams = max_sample_streams.max(1);
+        self.sample_streams = Arc::new(Semaphore::new(self.max_sample_streams as usize));
         self
     }
 
@@ -328,6 +366,111 @@ impl InsertSession {
     }
 }
 
+/// One Sample stream: an async task that holds a blocking thread only while it draws. See the
+/// module doc for why it does not block on the rate limiter.
+struct SampleSession {
+    /// This stream's place under `max_sample_streams`. Declared before `tx`, so it is released
+    /// before the client can see the stream end: a client that saw it end may open another.
+    _slot: OwnedSemaphorePermit,
+    table: Arc<Table>,
+    rows: usize,
+    beta: Option<f64>,
+    floats: FloatEncoding,
+    /// Per minibatch; 0 = wait as long as it takes.
+    timeout_ms: u32,
+    stop: StopFlag,
+    tx: mpsc::Sender<Result<SampledBatch, Status>>,
+}
+
+impl SampleSession {
+    async fn run(self, max_batches: u64) {
+        let mut sent = 0u64;
+        while max_batches == 0 || sent < max_batches {
+            // Reserve before drawing: each prefetched minibatch is charged to the rate
+            // limiter when drawn, so never draw more than `prefetch` ahead of the client.
+            let Ok(permit) = self.tx.reserve().await else {
+                debug!(sent, "client went away");
+                return;
+            };
+            if self.stop.is_set() {
+                permit.send(Err(shutting_down_sample()));
+                return;
+            }
+            let deadline = (self.timeout_ms > 0).then(|| Instant::now() + Duration::from_millis(self.timeout_ms.into()));
+            match self.draw(deadline).await {
+                Some(Ok(batch)) => {
+                    permit.send(Ok(batch));
+                    sent += 1;
+                }
+                Some(Err(status)) => {
+                    debug!(%status, sent, "sample stream ends");
+                    permit.send(Err(status));
+                    return;
+                }
+                None if self.stop.is_set() => {
+                    permit.send(Err(shutting_down_sample()));
+                    return;
+                }
+                None => {
+                    debug!(sent, "client went away while the sampler was blocked");
+                    return;
+                }
+            }
+        }
+        debug!(sent, "max_batches reached");
+    }
+
+    /// One minibatch, waiting for the rate limiter until `deadline` without holding a thread;
+    /// None when the client went away or the server is stopping meanwhile.
+    async fn draw(&self, deadline: Option<Instant>) -> Option<Result<SampledBatch, Status>> {
+        let started = Instant::now();
+        let table = Arc::clone(&self.table);
+        let mut stop = self.stop.clone();
+        let mut waited = false;
+        let outcome = loop {
+            // Enabled before trying, so a change between the try and the await still wakes us.
+            let changed = table.changed();
+            tokio::pin!(changed);
+            changed.as_mut().enable();
+            let (t, rows, beta, floats) = (Arc::clone(&table), self.rows, self.beta, self.floats);
+            let span = tracing::Span::current();
+            let attempt = tokio::task::spawn_blocking(move || {
+                let _enter = span.enter();
+                t.try_sample_as(rows, beta, floats)
+            })
+            .await;
+            match attempt {
+                Ok(Ok(Some(batch))) => break Some(Ok(batch)),
+                Ok(Ok(None)) => {}
+                Ok(Err(e)) => break Some(Err(e.to_status())),
+                Err(join) => break Some(Err(Status::internal(format!("sample task failed: {join}")))),
+            }
+            waited = true;
+            let expired = async {
+                match deadline {
+                    Some(d) => tokio::time::sleep_until(d.into()).await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                biased;
+                _ = stop.wait() => break None,
+                _ = self.tx.closed() => break None,
+                _ = expired => break Some(Err(table.sample_deadline_exceeded(started.elapsed()).to_status())),
+                _ = &mut changed => {} // an insert, sample or close: try again
+            }
+        };
+        if waited {
+            table.record_sample_blocked(started.elapsed());
+        }
+        outcome
+    }
+}
+
+fn shutting_down_sample() -> Status {
+    Status::unavailable("replay server is shutting down")
+}
+
 #[tonic::async_trait]
 impl ReplayService for ReplayGrpc {
     type InsertStream = ReceiverStream<Result<InsertAck, Status>>;
@@ -352,50 +495,19 @@ impl ReplayService for ReplayGrpc {
         let prefetch = req.prefetch.clamp(1, self.max_prefetch);
         let floats = if req.float_columns_as_bytes { FloatEncoding::F32Le } else { FloatEncoding::Packed };
         let span = info_span!("Sample", table = %self.table.config().name, batch_size = rows, prefetch, max_batches = req.max_batches, peer = ?peer);
+        let Ok(slot) = Arc::clone(&self.sample_streams).try_acquire_owned() else {
+            self.table.record_sample_stream_refused();
+            span.in_scope(|| warn!(limit = self.max_sample_streams, "sample stream refused: too many open"));
+            return Err(Status::resource_exhausted(format!(
+                "{} Sample streams are open on table `{}`, this server's limit (max_sample_streams in its config); retry after one ends, or raise the limit",
+                self.max_sample_streams,
+                self.table.config().name
+            )));
+        };
         span.in_scope(|| info!(timeout_ms = req.timeout_ms, importance_beta = req.importance_beta, float_columns_as_bytes = req.float_columns_as_bytes, "sample stream opened"));
         let (tx, rx) = mpsc::channel(prefetch as usize);
-        let table = Arc::clone(&self.table);
-        let stop = self.stop_flag();
-        let runtime = tokio::runtime::Handle::current();
-        // One blocking thread per stream for its whole life: it draws, then waits for room.
-        tokio::task::spawn_blocking(move || {
-            let _enter = span.enter();
-            let mut sent = 0u64;
-            while req.max_batches == 0 || sent < req.max_batches {
-                // Reserve before drawing: each prefetched minibatch is charged to the rate
-                // limiter when drawn, so never draw more than `prefetch` ahead of the client.
-                let Ok(permit) = runtime.block_on(tx.reserve()) else {
-                    debug!(sent, "client went away");
-                    return;
-                };
-                if stop.is_set() {
-                    permit.send(Err(Status::unavailable("replay server is shutting down")));
-                    return;
-                }
-                let deadline = (req.timeout_ms > 0).then(|| Instant::now() + Duration::from_millis(req.timeout_ms.into()));
-                let beta = Some(f64::from(req.importance_beta));
-                match wait_polled(deadline, || tx.is_closed() || stop.is_set(), |until| table.sample_as(rows, beta, until, floats)) {
-                    Some(Ok(batch)) => {
-                        permit.send(Ok(batch));
-                        sent += 1;
-                    }
-                    Some(Err(e)) => {
-                        debug!(error = %e, sent, "sample stream ends");
-                        permit.send(Err(e.to_status()));
-                        return;
-                    }
-                    None if stop.is_set() => {
-                        permit.send(Err(Status::unavailable("replay server is shutting down")));
-                        return;
-                    }
-                    None => {
-                        debug!(sent, "client went away while the sampler was blocked");
-                        return;
-                    }
-                }
-            }
-            debug!(sent, "max_batches reached");
-        });
+        let stream = SampleSession { _slot: slot, table: Arc::clone(&self.table), rows, beta: Some(f64::from(req.importance_beta)), floats, timeout_ms: req.timeout_ms, stop: self.stop_flag(), tx };
+        tokio::spawn(stream.run(req.max_batches).instrument(span));
         Ok(Response::new(ReceiverStream::new(rx)))
     }
 

@@ -11,6 +11,7 @@
 //! | `replay_inserts_total`, `replay_samples_total`| counter | rows inserted / sampled                  |
 //! | `replay_insert_rows_per_s`, `…sample_rows_per_s` | gauge | rates over the last ~10 s               |
 //! | `replay_rate_limiter_blocked_seconds_total{side}` | counter | time callers waited on the limiter  |
+//! | `replay_sample_streams_refused_total`         | counter | Sample streams refused (RESOURCE_EXHAUSTED: `max_sample_streams` open) |
 //! | `replay_actor_{rows,batches,duplicate_batches,rejected_batches}_total` | counter | per actor |
 //! | `replay_actor_policy_version_lag`             | gauge   | newest policy seen − this actor's        |
 //!
@@ -56,6 +57,7 @@ pub fn render(table: &Table) -> String {
             "Seconds inserts or samples spent waiting on the rate limiter.",
             [(labels([("table", t), ("side", "insert")]), rl.inserts_blocked_ms as f64 / 1e3), (labels([("table", t), ("side", "sample")]), rl.samples_blocked_ms as f64 / 1e3)],
         )
+        .counters("replay_sample_streams_refused", "Sample streams refused with RESOURCE_EXHAUSTED because max_sample_streams were open.", table_only(table.sample_streams_refused() as f64))
         .counters("replay_actor_rows", "Rows inserted per actor.", per_actor(&|a| a.rows as f64))
         .counters("replay_actor_batches", "Batches inserted per actor (duplicates excluded).", per_actor(&|a| a.batches as f64))
         .counters("replay_actor_duplicate_batches", "Batches acknowledged as duplicates (retransmissions) per actor.", per_actor(&|a| a.duplicate_batches as f64))

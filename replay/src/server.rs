@@ -30,7 +30,7 @@ use tracing::info;
 
 use crate::config::{PersistenceConfig, TableConfig};
 use crate::error::ReplayError;
-use crate::grpc::{DEFAULT_MAX_PREFETCH, ReplayGrpc};
+use crate::grpc::{DEFAULT_MAX_PREFETCH, DEFAULT_MAX_SAMPLE_STREAMS, ReplayGrpc};
 use crate::table::Table;
 
 /// Default gRPC address: loopback only.
@@ -62,6 +62,11 @@ pub struct ServerConfig {
     pub auth_token_file: Option<PathBuf>,
     /// Largest SampleRequest.prefetch honoured; larger requests are clamped [replay.proto: 16].
     pub max_prefetch: u32,
+    /// Most Sample streams open at once; one more is refused with RESOURCE_EXHAUSTED (and
+    /// counted in `replay_sample_streams_refused_total`) instead of slowing everyone down
+    /// [default: 256 — a learner opens one or a few; each open stream may hold `prefetch`
+    /// drawn minibatches in memory]. Must be ≥ 1.
+    pub max_sample_streams: u32,
     /// After a shutdown signal, how long open streams may take to end before they are cut.
     pub shutdown_grace_ms: u64,
     /// Seed of the sampler's random stream.
@@ -87,6 +92,7 @@ impl Default for ServerConfig {
             tls: None,
             auth_token_file: None,
             max_prefetch: DEFAULT_MAX_PREFETCH,
+            max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS,
             shutdown_grace_ms: 5_000,
             seed: 0,
             log_json: false,
@@ -138,6 +144,9 @@ impl ServerConfig {
     pub fn validate(&self) -> Result<(), ServerError> {
         self.table.validate()?;
         self.persistence.validate()?;
+        if self.max_sample_streams == 0 {
+            return Err(ReplayError::InvalidConfig("max_sample_streams must be ≥ 1 (it bounds the Sample streams open at once)".into()).into());
+        }
         if !self.listen.ip().is_loopback() && (self.tls.is_none() || self.auth_token_file.is_none()) {
             return Err(ServerError::Insecure { addr: self.listen });
         }
@@ -151,7 +160,7 @@ impl ServerConfig {
 
     /// What [`serve`] needs besides the listener and the table.
     pub fn serve_options(&self) -> Result<ServeOptions, ServerError> {
-        Ok(ServeOptions { security: self.security()?, max_prefetch: self.max_prefetch, shutdown_grace: Duration::from_millis(self.shutdown_grace_ms) })
+        Ok(ServeOptions { security: self.security()?, max_prefetch: self.max_prefetch, max_sample_streams: self.max_sample_streams, shutdown_grace: Duration::from_millis(self.shutdown_grace_ms) })
     }
 }
 
@@ -160,12 +169,14 @@ impl ServerConfig {
 pub struct ServeOptions {
     pub security: Security,
     pub max_prefetch: u32,
+    /// See [`ServerConfig::max_sample_streams`].
+    pub max_sample_streams: u32,
     pub shutdown_grace: Duration,
 }
 
 impl Default for ServeOptions {
     fn default() -> Self {
-        ServeOptions { security: Security::default(), max_prefetch: DEFAULT_MAX_PREFETCH, shutdown_grace: Duration::from_secs(5) }
+        ServeOptions { security: Security::default(), max_prefetch: DEFAULT_MAX_PREFETCH, max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS, shutdown_grace: Duration::from_secs(5) }
     }
 }
 
@@ -182,7 +193,7 @@ pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptio
     let name = table.config().name.clone();
     info!(table = %name, "replay gRPC starting");
     let make = |auth, stop| {
-        let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_shutdown(stop);
+        let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_max_sample_streams(options.max_sample_streams).with_shutdown(stop);
         let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
         Routes::new(InterceptedService::new(service, auth))
     };
@@ -202,7 +213,10 @@ mod tests {
         assert!(c.listen.ip().is_loopback());
         assert_eq!(c.listen.port(), 50051);
         assert_eq!(c.metrics_listen, Some("127.0.0.1:9464".parse().unwrap()));
+        assert_eq!(c.max_sample_streams, 256);
         c.validate().unwrap();
+        let none = ServerConfig { max_sample_streams: 0, ..ServerConfig::default() };
+        assert!(none.validate().unwrap_err().to_string().contains("max_sample_streams"));
     }
 
     #[test]

@@ -13,7 +13,9 @@
 //!
 //! Threading: one mutex guards everything; every method takes it once and holds it for
 //! O(rows × dims) copying or O(rows × log capacity) tree work. Blocked callers park on a
-//! condition variable that every insert, sample and close notifies. Memory is the raw payload
+//! condition variable that every insert, sample and close notifies; async callers (the gRPC
+//! Sample stream) instead try without waiting ([`Table::try_sample_as`]) and await
+//! [`Table::changed`], which fires at the same moments. Memory is the raw payload
 //! plus 16 bytes a slot for the sum tree and ~30 bytes of per-row metadata.
 //!
 //! The seams to persistence:
@@ -30,6 +32,7 @@
 //! ```
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -205,6 +208,11 @@ pub struct Table {
     cfg: TableConfig,
     state: Mutex<State>,
     changed: Condvar,
+    /// Fired with `changed`, for callers that wait asynchronously (see [`Table::changed`]).
+    changed_async: tokio::sync::Notify,
+    /// Sample streams the transport refused because too many were open (see
+    /// [`Table::record_sample_stream_refused`]).
+    sample_streams_refused: AtomicU64,
     started_unix_ms: u64,
     /// A journal is set: inserts encode their batch (outside the lock) for it.
     journaled: bool,
@@ -362,7 +370,15 @@ impl Table {
         for column in [&mut state.obs, &mut state.next_obs, &mut state.action] {
             advise_huge_pages(column);
         }
-        Ok(Table { cfg, state: Mutex::new(state), changed: Condvar::new(), started_unix_ms: unix_ms(), journaled: false })
+        Ok(Table {
+            cfg,
+            state: Mutex::new(state),
+            changed: Condvar::new(),
+            changed_async: tokio::sync::Notify::new(),
+            sample_streams_refused: AtomicU64::new(0),
+            started_unix_ms: unix_ms(),
+            journaled: false,
+        })
     }
 
     /// Hands every insert and priority update from now on to `journal` first (see
@@ -498,7 +514,7 @@ impl Table {
         s.note_insert(batch, rows, now_ms);
         let ack = InsertAck { actor_id: batch.actor_id.clone(), sequence: batch.sequence, accepted_rows: rows as u32, duplicate: false, table_size: s.size };
         drop(st);
-        self.changed.notify_all();
+        self.wake();
         Ok(ack)
     }
 
@@ -527,6 +543,69 @@ impl Table {
     /// Uniform tables without `max_times_sampled` whose every key since the oldest stored one
     /// is live (the normal case) draw keys directly, without walking the sum tree.
     pub fn sample_as(&self, rows: usize, beta: Option<f64>, deadline: Option<Instant>, floats: FloatEncoding) -> Result<SampledBatch, ReplayError> {
+        let beta = self.sample_beta(rows, beta)?;
+        let st = self.lock();
+        let st = self.wait(st, deadline, "sample", |s| s.limiter.can_sample(s.size, rows as u64))?;
+        Ok(self.draw(st, rows, beta, floats))
+    }
+
+    /// [`Table::sample_as`] without waiting: `Ok(None)` when the rate limiter does not allow
+    /// the minibatch now. It still takes the table's lock (which an insert may hold while its
+    /// journal writes), so async callers run it on a blocking thread. Pair it with
+    /// [`Table::changed`] to wait, and with [`Table::record_sample_blocked`] /
+    /// [`Table::sample_deadline_exceeded`] to account the wait as `sample_as` would.
+    pub fn try_sample_as(&self, rows: usize, beta: Option<f64>, floats: FloatEncoding) -> Result<Option<SampledBatch>, ReplayError> {
+        let beta = self.sample_beta(rows, beta)?;
+        let st = self.lock();
+        if st.closed {
+            return Err(ReplayError::Closed(self.cfg.name.clone()));
+        }
+        if !st.limiter.can_sample(st.size, rows as u64) {
+            return Ok(None);
+        }
+        Ok(Some(self.draw(st, rows, beta, floats)))
+    }
+
+    /// A future that resolves at the next insert, sample or close: whenever a caller blocked
+    /// on the rate limiter could proceed. Create it and `enable()` it *before* checking (e.g.
+    /// with [`Table::try_sample_as`]), or a change between the check and the await is missed.
+    pub fn changed(&self) -> tokio::sync::futures::Notified<'_> {
+        self.changed_async.notified()
+    }
+
+    /// Adds `waited` to the rate limiter's sample-side blocked time (for callers that waited
+    /// outside [`Table::sample_as`]).
+    pub fn record_sample_blocked(&self, waited: Duration) {
+        self.lock().limiter.sample_blocked(waited.as_nanos() as u64);
+    }
+
+    /// The DeadlineExceeded a sampler gets after waiting `waited` in vain, worded as
+    /// [`Table::sample_as`] words it (with the limiter's state). Does not account the wait.
+    pub fn sample_deadline_exceeded(&self, waited: Duration) -> ReplayError {
+        let st = self.lock();
+        let state = serde_json::to_string(&st.limiter.state()).unwrap_or_default();
+        ReplayError::DeadlineExceeded { op: "sample", waited_ms: waited.as_millis() as u64, state: format!("size {}, {state}", st.size) }
+    }
+
+    /// Counts a Sample stream the transport refused because its limit of open streams was
+    /// reached (`replay_sample_streams_refused_total` in /metrics).
+    pub fn record_sample_stream_refused(&self) {
+        self.sample_streams_refused.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Sample streams refused so far (see [`Table::record_sample_stream_refused`]).
+    pub fn sample_streams_refused(&self) -> u64 {
+        self.sample_streams_refused.load(Ordering::Relaxed)
+    }
+
+    /// Wakes every caller waiting for a change: blocked threads and async waiters alike.
+    fn wake(&self) {
+        self.changed.notify_all();
+        self.changed_async.notify_waiters();
+    }
+
+    /// Checks a sample request; returns the importance-sampling exponent in effect.
+    fn sample_beta(&self, rows: usize, beta: Option<f64>) -> Result<f64, ReplayError> {
         if rows == 0 || rows > self.cfg.max_sample_rows {
             return Err(ReplayError::BadRequest(format!("batch_size must be in 1..={}, got {rows}", self.cfg.max_sample_rows)));
         }
@@ -536,8 +615,11 @@ impl Table {
             (_, Some(b)) => return Err(ReplayError::BadRequest(format!("importance beta must be finite and ≥ 0, got {b}"))),
             (SamplerConfig::Uniform, None) => 0.0,
         };
-        let st = self.lock();
-        let mut st = self.wait(st, deadline, "sample", |s| s.limiter.can_sample(s.size, rows as u64))?;
+        Ok(beta)
+    }
+
+    /// Draws a minibatch of `rows` the rate limiter allows (checked by the caller, under `st`).
+    fn draw(&self, mut st: MutexGuard<'_, State>, rows: usize, beta: f64, floats: FloatEncoding) -> SampledBatch {
         let (d, a) = (self.cfg.obs_dim, self.cfg.act_dim);
         let cap = self.cfg.capacity as u64;
         let s = &mut *st;
@@ -624,8 +706,8 @@ impl Table {
         s.limiter.sampled(rows as u64);
         s.sample_rate.add(Instant::now(), rows as u64);
         drop(st);
-        self.changed.notify_all();
-        Ok(out)
+        self.wake();
+        out
     }
 
     /// `Some((oldest key, rows))` when uniform draws may skip the sum tree: a uniform sampler
@@ -702,7 +784,7 @@ impl Table {
     /// `DurableTable`'s close does this, then writes its final snapshot.)
     pub fn close(&self) {
         self.lock().closed = true;
-        self.changed.notify_all();
+        self.wake();
     }
 
     /// Per-actor statistics (clone).

@@ -657,6 +657,85 @@ async fn shutdown_ends_open_streams_with_unavailable() {
     assert_eq!(table.size(), 1);
 }
 
+/// More Sample streams than `max_sample_streams` are refused at once with RESOURCE_EXHAUSTED,
+/// and counted; the admitted ones wait on the rate limiter without holding a blocking thread.
+/// 600 admitted streams all waiting is more than tokio's 512 blocking threads, so with a
+/// thread per waiting stream the insert and the priority update below would stall.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_thousand_sample_streams_are_each_served_or_refused_and_inserts_and_updates_go_on() {
+    const STREAMS: usize = 1000;
+    const LIMIT: usize = 600;
+    // hyper serves at most 200 concurrent streams per connection: spread them over ten.
+    const CONNECTIONS: usize = 10;
+    let mut cfg = TableConfig { sampler: SamplerConfig::Prioritized { alpha: 1.0, beta: 0.4, epsilon: 0.0 }, ..table_cfg(1000) };
+    cfg.rate_limiter.min_size_to_sample = 50;
+    let h = Harness::start_with(cfg, ServeOptions { max_sample_streams: LIMIT as u32, ..ServeOptions::default() }).await;
+    let mut client = h.client().await;
+    let mut connections = Vec::new();
+    for _ in 0..CONNECTIONS {
+        connections.push(h.client().await);
+    }
+
+    // The table is empty, so every admitted stream waits: none can end before all are open.
+    let req = SampleRequest { timeout_ms: 0, max_batches: 1, ..sample_request(4) };
+    let mut opening = tokio::task::JoinSet::new();
+    for i in 0..STREAMS {
+        let (mut c, req) = (connections[i % CONNECTIONS].clone(), req.clone());
+        opening.spawn(async move { c.sample(req).await.map(|r| r.into_inner()) });
+    }
+    let (mut open, mut refused) = (Vec::new(), 0);
+    within("every Sample call answered", async {
+        while let Some(answer) = opening.join_next().await {
+            match answer.expect("no panic") {
+                Ok(stream) => open.push(stream),
+                Err(status) => {
+                    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+                    assert!(status.message().contains("600 Sample streams") && status.message().contains("max_sample_streams"), "{}", status.message());
+                    refused += 1;
+                }
+            }
+        }
+    })
+    .await;
+    assert_eq!((open.len(), refused), (LIMIT, STREAMS - LIMIT));
+
+    // While those 600 wait: an insert is acknowledged and a priority update applies.
+    let (acks, end) = insert_all(&mut client, vec![batch("actor-c", 1, 0.0, 10)]).await;
+    assert!(end.is_none() && acks.len() == 1, "{end:?}");
+    let update = PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![0, 1, 2], priorities: vec![3.0; 3] };
+    let r = within("priority update", client.update_priorities(update)).await.expect("update").into_inner();
+    assert_eq!((r.updated, r.unknown_keys), (3, 0));
+
+    // Filling the table to min_size_to_sample serves each admitted stream its minibatch.
+    let (acks, end) = insert_all(&mut client, vec![batch("actor-c", 2, 10.0, 40)]).await;
+    assert!(end.is_none() && acks.len() == 1, "{end:?}");
+    let mut reading = tokio::task::JoinSet::new();
+    for mut stream in open {
+        reading.spawn(async move { (stream.message().await, stream.message().await) });
+    }
+    within("every admitted stream served", async {
+        while let Some(read) = reading.join_next().await {
+            let (first, end) = read.expect("no panic");
+            assert_eq!(first.expect("a minibatch").expect("not the end").num_rows, 4);
+            assert!(matches!(end, Ok(None)), "ends OK after max_batches: {end:?}");
+        }
+    })
+    .await;
+    assert_eq!(h.table.info().samples_total, (LIMIT * 4) as u64);
+
+    // Refusals are counted, in /metrics too.
+    assert_eq!(h.table.sample_streams_refused(), refused as u64);
+    let samples = parse_exposition(&metrics::render(&h.table));
+    let counted = samples.iter().find(|(s, _)| s == r#"replay_sample_streams_refused_total{table="transitions"}"#).expect("refusal counter exported");
+    assert_eq!(counted.1, refused as f64);
+
+    // The ended streams gave their places back.
+    let (batches, end) = sample_all(&mut client, sample_request(4)).await;
+    assert!(end.is_none() && batches.len() == 1, "{end:?}");
+    assert_eq!(h.table.sample_streams_refused(), refused as u64);
+    h.shutdown().await;
+}
+
 /// One HTTP/1.0 GET; returns (status line, headers, body).
 fn http_get(addr: SocketAddr, path: &str) -> (String, String, String) {
     let mut s = std::net::TcpStream::connect(addr).expect("connect metrics");

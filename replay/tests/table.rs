@@ -407,3 +407,29 @@ fn the_journal_gets_every_accepted_change_first_and_a_refused_one_changes_nothin
     assert_eq!(*journal.events.lock().unwrap(), ["insert 0+4 a#1", "insert 4+8 b#1", "priorities [(5, 3.0), (11, 4.0)]", "insert 12+3 a#2"].map(String::from));
     assert_eq!(t.checkpoint().mark(), mapless_replay::CheckpointMark { journal_position: 4, samples: 0 });
 }
+
+#[test]
+fn try_sample_never_waits_and_async_waiters_wake_on_insert() {
+    let mut c = cfg(100);
+    c.rate_limiter.min_size_to_sample = 5;
+    let t = Arc::new(Table::new(c, 1).unwrap());
+    let started = Instant::now();
+    assert!(t.try_sample_as(2, None, FloatEncoding::Packed).unwrap().is_none(), "below min size: no, at once");
+    assert!(started.elapsed() < Duration::from_secs(1));
+    let rt = tokio::runtime::Builder::new_current_thread().enable_time().build().unwrap();
+    rt.block_on(async {
+        let mut changed = std::pin::pin!(t.changed());
+        changed.as_mut().enable();
+        let t2 = Arc::clone(&t);
+        std::thread::spawn(move || t2.insert(&batch("a", 1, 0.0, 5), None).unwrap());
+        tokio::time::timeout(Duration::from_secs(10), changed).await.expect("an insert wakes async waiters");
+    });
+    assert_eq!(t.try_sample_as(2, None, FloatEncoding::Packed).unwrap().expect("allowed now").num_rows, 2);
+    t.record_sample_blocked(Duration::from_millis(250));
+    assert!(t.info().rate_limiter.unwrap().samples_blocked_ms >= 250);
+    let e = t.sample_deadline_exceeded(Duration::from_millis(7));
+    assert!(matches!(e, ReplayError::DeadlineExceeded { op: "sample", waited_ms: 7, .. }), "{e}");
+    assert!(e.to_string().contains("rate limiter"), "{e}");
+    t.close();
+    assert!(matches!(t.try_sample_as(2, None, FloatEncoding::Packed), Err(ReplayError::Closed(_))));
+}

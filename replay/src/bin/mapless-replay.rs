@@ -79,6 +79,9 @@ struct Cli {
     /// Largest SampleRequest.prefetch honoured [default: 16].
     #[arg(long)]
     max_prefetch: Option<u32>,
+    /// Most Sample streams open at once; more are refused with RESOURCE_EXHAUSTED [default: 256].
+    #[arg(long)]
+    max_sample_streams: Option<u32>,
     /// Seed of the sampler's random stream [default: 0].
     #[arg(long)]
     seed: Option<u64>,
@@ -127,6 +130,7 @@ impl Cli {
         set!(self.min_size_to_sample => t.rate_limiter.min_size_to_sample);
         set!(self.error_buffer => t.rate_limiter.error_buffer);
         set!(self.max_prefetch => c.max_prefetch);
+        set!(self.max_sample_streams => c.max_sample_streams);
         set!(self.seed => c.seed);
         if let Some(spi) = self.samples_per_insert {
             t.rate_limiter.samples_per_insert = Some(spi);
