@@ -124,6 +124,12 @@ impl EvalWorlds {
     }
 }
 
+/// The deterministic policy in a published weights snapshot (`.safetensors`).
+pub fn load_policy(policy_file: &Path) -> Result<Policy> {
+    let snapshot = read_safetensors_file(policy_file).with_context(|| format!("reading the policy {}", policy_file.display()))?;
+    Policy::from_snapshot(&snapshot).with_context(|| format!("loading the policy {}", policy_file.display()))
+}
+
 /// Runs `episodes` deterministic episodes of the policy in `policy_file` (a published weights
 /// snapshot, `.safetensors`) on `map` with `env`; draws `episode-K.png` into `out_dir`. `map`
 /// may be a list (`env3+gen:cave`): the episodes take its items in turn, a family's in its
@@ -132,8 +138,7 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
     if episodes == 0 {
         bail!("--episodes must be >= 1");
     }
-    let snapshot = read_safetensors_file(policy_file).with_context(|| format!("reading the policy {}", policy_file.display()))?;
-    let mut policy = Policy::from_snapshot(&snapshot).with_context(|| format!("loading the policy {}", policy_file.display()))?;
+    let mut policy = load_policy(policy_file)?;
     // One map, or a list of maps and families: episode k runs in item k mod n, a family's
     // episodes each in the next of its held-out worlds (never a training world).
     let worlds = EvalWorlds::new(map, env)?;

@@ -541,9 +541,7 @@ fn rollout(a: RolloutArgs) -> Result<()> {
     let mut cfg = match &a.policy {
         Some(name) => {
             let dir = policies::resolve(name)?;
-            let file = dir.join("policy.safetensors");
-            let snapshot = mapless_proto::weights_file::read_safetensors_file(&file).with_context(|| format!("reading the policy {}", file.display()))?;
-            policy = Some(mapless_actor::Policy::from_snapshot(&snapshot).with_context(|| format!("loading the policy {}", file.display()))?);
+            policy = Some(eval::load_policy(&dir.join("policy.safetensors"))?);
             train::read_run_config(&dir)?.env
         }
         None => EnvConfig { reward: RewardConfig::preset(a.reward.as_deref().unwrap_or("exploration"))?, ..EnvConfig::default() },

@@ -24,6 +24,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::eval::{self, EvalSummary};
 use crate::train::{Summary, read_run_config};
+use mapless_sim::EnvConfig;
 
 /// The card's machine-readable half.
 pub const CARD_JSON: &str = "card.json";
@@ -164,11 +165,11 @@ fn planned(trained_on: &str, max_steps: u32, extra: &[String]) -> Vec<(String, u
     v
 }
 
-fn run_eval(dir: &Path, map: &str, episodes: u32, max_steps: u32, out: Option<&Path>) -> Result<EvalSummary> {
-    let cfg = read_run_config(dir)?;
-    let mut env = cfg.env.clone();
+/// One deterministic evaluation of the policy in `dir` under its own simulator settings `env`.
+fn run_eval(dir: &Path, env: &EnvConfig, map: &str, episodes: u32, max_steps: u32, seed: u64, out: Option<&Path>) -> Result<EvalSummary> {
+    let mut env = env.clone();
     env.episode.max_steps = max_steps;
-    eval::evaluate(&dir.join("policy.safetensors"), map, &env, episodes, CARD_SEED, out)
+    eval::evaluate(&dir.join("policy.safetensors"), map, &env, episodes, seed, out)
 }
 
 /// Copies a finished run into `policies/NAME`, evaluates it and writes its card.
@@ -198,7 +199,7 @@ pub fn ship(run: &Path, name: &str, into: &Path, extra: &[String], command: Opti
     let mut evaluations = Vec::new();
     for (k, (map, episodes, max_steps, check)) in planned(&cfg.map, cfg.env.episode.max_steps, extra).into_iter().enumerate() {
         let out = sheets.path().join(k.to_string());
-        let s = run_eval(&dir, &map, episodes, max_steps, Some(&out))?;
+        let s = run_eval(&dir, &cfg.env, &map, episodes, max_steps, CARD_SEED, Some(&out))?;
         eprintln!("  {name}: {}{}", s.one_line(), if check { " (check)" } else { "" });
         if map == "env3" && !check {
             std::fs::copy(out.join("sheet.png"), dir.join("sheet-env3.png"))?;
@@ -303,11 +304,9 @@ pub fn check(dir: &Path) -> Result<Vec<String>> {
     if checks.is_empty() {
         bail!("{}: the card has no check evaluation", dir.display());
     }
+    let env = read_run_config(dir)?.env;
     for e in checks {
-        let cfg = read_run_config(dir)?;
-        let mut env = cfg.env.clone();
-        env.episode.max_steps = e.max_steps;
-        let s = eval::evaluate(&dir.join("policy.safetensors"), &e.map, &env, e.episodes, e.seed, None)?;
+        let s = run_eval(dir, &env, &e.map, e.episodes, e.max_steps, e.seed, None)?;
         let now = CardEval::from_summary(&e.map, e.episodes, e.max_steps, true, &s);
         diffs.extend(e.differences(&now).into_iter().map(|d| format!("{} on {}: {d}", card.name, e.map)));
     }
