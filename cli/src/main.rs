@@ -95,7 +95,13 @@ enum PoliciesCmd {
     List,
     /// Rerun every shipped policy's short check evaluations (or those named) and compare them
     /// with its card; fails on any difference.
-    Check { names: Vec<String> },
+    Check {
+        names: Vec<String>,
+        /// Rerun every evaluation on the cards (full ones too) and write the new figures into
+        /// them, printing what changed: after a simulator change that moves them on purpose.
+        #[arg(long)]
+        update: bool,
+    },
     /// Copy a finished run's policy into `policies/NAME`, evaluate it (its training map and
     /// env3, 10 episodes each; env3 and `--eval` maps at 3,000 steps) and write its model card.
     Ship {
@@ -361,10 +367,18 @@ fn policies_cmd(cmd: PoliciesCmd) -> Result<()> {
             }
             println!("(env3 steps: mean of the card's 3,000-step episodes, (collisions/episodes); cards: {}/NAME/card.md)", dir.display());
         }
-        PoliciesCmd::Check { names } => {
+        PoliciesCmd::Check { names, update } => {
             let names = if names.is_empty() { policies::list(&dir)?.into_iter().map(|c| c.name).collect() } else { names };
             if names.is_empty() {
                 bail!("no shipped policies in {}", dir.display());
+            }
+            if update {
+                for n in &names {
+                    let d = policies::update(&policies::resolve(n)?)?;
+                    println!("{n}: {}", if d.is_empty() { "unchanged".to_owned() } else { format!("updated: {}", d.join("; ")) });
+                }
+                policies::write_index(&dir)?;
+                return Ok(());
             }
             let mut failed = Vec::new();
             for n in &names {
@@ -487,6 +501,8 @@ fn maps_stats(map: &str, grid: f64, headings: usize, json: bool) -> Result<()> {
     let steps = world.cfg.episode.max_steps;
     println!("{}: {} collision-free poses scanned ({grid} m × {headings} headings)", world.map.name, b.poses);
     println!("  largest minimum range {:.2} m at ({:.1}, {:.1}, {:.0}°); mean {:.2} m", b.max_min_range_m, b.at[0], b.at[1], b.at[2].to_degrees(), b.mean_min_range_m);
+    let [p50, p90, p99] = b.min_range_percentiles_m;
+    println!("  minimum range over the poses: 50th percentile {p50:.2} m, 90th {p90:.2} m, 99th {p99:.2} m");
     println!(
         "  eq. (1) per step at most {:.3} ({:.0} over {steps} steps); standing still at most {:.3} ({:.0})",
         b.per_step,

@@ -313,6 +313,31 @@ pub fn check(dir: &Path) -> Result<Vec<String>> {
     Ok(diffs)
 }
 
+/// Reruns every evaluation on a policy's card (full and check rows, same maps, episodes, step
+/// limits and seeds), rewrites `card.json`, `card.md` and the env3 sheet with the new figures and
+/// returns what changed. For a simulator change that moves the figures on purpose; the training
+/// record (command, seed, wall time, steps) is kept.
+pub fn update(dir: &Path) -> Result<Vec<String>> {
+    let mut card = read_card(dir)?;
+    let env = read_run_config(dir)?.env;
+    let sheets = tempfile::tempdir()?;
+    let mut changed = Vec::new();
+    for (k, e) in card.evaluations.iter_mut().enumerate() {
+        let out = sheets.path().join(k.to_string());
+        let s = run_eval(dir, &env, &e.map, e.episodes, e.max_steps, e.seed, Some(&out))?;
+        eprintln!("  {}: {} {}{}", card.name, e.map, s.one_line(), if e.check { " (check)" } else { "" });
+        if e.map == "env3" && !e.check {
+            std::fs::copy(out.join("sheet.png"), dir.join("sheet-env3.png"))?;
+        }
+        let now = CardEval::from_summary(&e.map, e.episodes, e.max_steps, e.check, &s);
+        changed.extend(e.differences(&now).into_iter().map(|d| format!("{} on {}: {d}", card.name, e.map)));
+        *e = CardEval { seed: e.seed, ..now };
+    }
+    mapless_proto::atomic_file::write_file_atomically(&dir.join(CARD_JSON), serde_json::to_string_pretty(&card)?.as_bytes())?;
+    mapless_proto::atomic_file::write_file_atomically(&dir.join("card.md"), card_markdown(&card).as_bytes())?;
+    Ok(changed)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

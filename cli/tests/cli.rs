@@ -212,6 +212,8 @@ fn a_shipped_policy_evaluates_and_drives_by_name_and_a_changed_card_fails_its_ch
         std::fs::copy(Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/env1-sac").join(f), shelf.join(f)).unwrap();
     }
     let mut card: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(shelf.join("card.json")).unwrap()).unwrap();
+    // Keep only the short check rows (so that `--update` below stays quick).
+    card["evaluations"].as_array_mut().unwrap().retain(|e| e["check"] == true);
     let check = card["evaluations"].as_array_mut().unwrap().iter_mut().find(|e| e["check"] == true).unwrap();
     check["mean_steps"] = serde_json::json!(check["mean_steps"].as_f64().unwrap() + 1.0);
     std::fs::write(shelf.join("card.json"), serde_json::to_string(&card).unwrap()).unwrap();
@@ -219,6 +221,15 @@ fn a_shipped_policy_evaluates_and_drives_by_name_and_a_changed_card_fails_its_ch
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stdout);
     assert!(err.contains("env1-sac on") && err.contains("mean steps"), "{err}");
+    // `--update` reruns the card's evaluations, says what moved and writes it back: it holds again.
+    let shelf_cmd = |args: &[&str]| Command::new(env!("CARGO_BIN_EXE_mapless")).args(args).env("MAPLESS_POLICIES", d.join("shelf")).env("RUST_LOG", "warn").output().unwrap();
+    let o = shelf_cmd(&["policies", "check", "--update", "env1-sac"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("env1-sac: updated") && out.contains("mean steps"), "{out}");
+    assert!(shelf.join("card.md").exists() && d.join("shelf/README.md").exists());
+    let o = shelf_cmd(&["policies", "check"]);
+    assert!(o.status.success(), "{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     let o = mapless(&["eval", "--policy", "no-such-policy", "--map", "env3"]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("no shipped policy \"no-such-policy\""));

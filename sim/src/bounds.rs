@@ -31,6 +31,9 @@ pub struct RewardBounds {
     pub at: [f64; 3],
     /// Mean noiseless minimum range over the collision-free poses scanned (m).
     pub mean_min_range_m: f64,
+    /// The 50th, 90th and 99th percentiles of the noiseless minimum range over those poses (m,
+    /// to the 0.01 m of a histogram): what the scans a policy meets there look like.
+    pub min_range_percentiles_m: [f64; 3],
     /// Collision-free poses scanned.
     pub poses: usize,
     /// Per-step reward at most: r_max (+ 4 σ) at full speed, no turn.
@@ -60,6 +63,9 @@ pub fn reward_bounds(world: &World, grid_m: f64, headings: usize) -> RewardBound
     let nx = (b.width() / grid_m).floor() as usize;
     let ny = (b.height() / grid_m).floor() as usize;
     let (mut best, mut at, mut sum, mut poses) = (0.0f64, [0.0; 3], 0.0f64, 0usize);
+    // Minimum ranges in 0.01 m bins, for the percentiles.
+    const BIN_M: f64 = 0.01;
+    let mut hist = vec![0u64; (cfg.sensor.max_range_m / BIN_M).ceil() as usize + 1];
     for j in 0..=ny {
         let y = b.min_y + j as f64 * grid_m;
         for i in 0..=nx {
@@ -77,6 +83,8 @@ pub fn reward_bounds(world: &World, grid_m: f64, headings: usize) -> RewardBound
                 let r = ranges.iter().copied().fold(f32::INFINITY, f32::min) as f64;
                 sum += r;
                 poses += 1;
+                let last = hist.len() - 1;
+                hist[((r / BIN_M) as usize).min(last)] += 1;
                 if r > best {
                     best = r;
                     at = [x, y, heading];
@@ -84,12 +92,25 @@ pub fn reward_bounds(world: &World, grid_m: f64, headings: usize) -> RewardBound
             }
         }
     }
+    let percentile = |q: f64| {
+        let rank = (q * poses as f64).ceil().max(1.0) as u64;
+        let mut seen = 0;
+        hist.iter()
+            .position(|&c| {
+                seen += c;
+                seen >= rank
+            })
+            .map_or(0.0, |i| (i as f64 + 1.0) * BIN_M)
+            .min(best)
+    };
+    let min_range_percentiles_m = [percentile(0.5), percentile(0.9), percentile(0.99)];
     let r = (best + 4.0 * cfg.sensor.noise_std_m).min(cfg.sensor.max_range_m);
     let reward = &cfg.reward;
     RewardBounds {
         max_min_range_m: best,
         at,
         mean_min_range_m: if poses > 0 { sum / poses as f64 } else { 0.0 },
+        min_range_percentiles_m,
         poses,
         per_step: sup_reward(reward, r, cfg.vehicle.v_max_mps),
         standing_still_per_step: sup_reward(reward, r, 0.0),

@@ -157,13 +157,20 @@ pub struct EpisodeConfig {
     pub max_steps: u32,
     /// Minimum distance from the footprint to any obstacle at the start [inferred: 0.5 m].
     pub start_clearance_m: f64,
+    /// Keep a start only if some sequence of actions never collides from it — witnessed by up
+    /// to 2 m straight, then a full-lock circle, left or right
+    /// ([`crate::env::World::can_circle_from`]) [inferred: the paper starts at random poses and
+    /// is silent on this; the car has no reverse and a 0.76 m minimum turn radius, so the
+    /// clearance rule alone admits poses, facing a wall 0.81–0.85 m away or tucked into a
+    /// corner, from which every action collides].
+    pub start_escapable: bool,
     /// Rejection-sampling attempts before a map is declared to have no valid start.
     pub start_attempts: usize,
 }
 
 impl Default for EpisodeConfig {
     fn default() -> Self {
-        EpisodeConfig { max_steps: 1000, start_clearance_m: 0.5, start_attempts: 100_000 }
+        EpisodeConfig { max_steps: 1000, start_clearance_m: 0.5, start_escapable: true, start_attempts: 100_000 }
     }
 }
 

@@ -62,6 +62,53 @@ impl World {
         let circumradius = self.footprint.half_length_m.hypot(self.footprint.half_width_m);
         self.map.is_free(x, y) && self.collide.distance_to_nearest(x, y) >= clearance_m + circumradius
     }
+
+    /// Can the car, started at `pose`, drive on for ever? The car has no reverse and turns no
+    /// tighter than L / tan δ_max (0.76 m at the rear axle), so a pose 0.83 m from a wall and
+    /// facing it collides whatever the policy does. The witness used here: after driving
+    /// straight for 0, 0.5, 1, 1.5 or 2 m, the car steers to full lock, left or right, and drives
+    /// a whole circle without touching anything — a loop it could repeat for ever. Sufficient,
+    /// not necessary (a pose in a corridor too narrow to turn in, heading along it, fails it and
+    /// is merely not used as a start).
+    pub fn can_circle_from(&self, pose: Pose) -> bool {
+        let vc = &self.cfg.vehicle;
+        let hits = |p: &Pose| self.collide.footprint_collides(p.x_m, p.y_m, p.heading_rad, &self.footprint);
+        // Walk in pieces no longer than the simulator's own sub-step.
+        let piece_m = vc.max_substep_m.min(0.05);
+        let yaw_rate_per_m = vc.slip_rad(vc.max_steer_rad).sin() / vc.lr_m;
+        let circle_m = std::f64::consts::TAU / yaw_rate_per_m;
+        let n_circle = (circle_m / piece_m).ceil() as usize;
+        let circle_t = circle_m / n_circle as f64 / vc.v_max_mps;
+        let circles = |from: Pose| {
+            [vc.max_steer_rad, -vc.max_steer_rad].into_iter().any(|steer| {
+                let mut p = from;
+                (0..n_circle).all(|_| {
+                    p = vc.advance(p, vc.v_max_mps, steer, circle_t);
+                    !hits(&p)
+                })
+            })
+        };
+        // Four straight legs of 0.5 m; a circle is tried before the first and after each.
+        const LEG_M: f64 = 0.5;
+        const LEGS: usize = 4;
+        let per_leg = (LEG_M / piece_m).ceil() as usize;
+        let leg_t = LEG_M / per_leg as f64 / vc.v_max_mps;
+        let mut p = pose;
+        for leg in 0..=LEGS {
+            if leg > 0 {
+                for _ in 0..per_leg {
+                    p = vc.advance(p, vc.v_max_mps, 0.0, leg_t);
+                    if hits(&p) {
+                        return false;
+                    }
+                }
+            }
+            if circles(p) {
+                return true;
+            }
+        }
+        false
+    }
 }
 
 /// Result of one step of one vehicle.
@@ -189,7 +236,8 @@ impl Env {
         self.trajectory.as_deref()
     }
 
-    /// Starts an episode at a uniformly random collision-free pose and writes its observation.
+    /// Starts an episode at a uniformly random collision-free pose (with `episode.start_escapable`,
+    /// one the car can drive on from: [`World::can_circle_from`]) and writes its observation.
     pub fn reset(&mut self, obs: &mut [f32]) -> Result<()> {
         let w = Arc::clone(&self.world);
         let b = w.map.bounds;
@@ -197,13 +245,14 @@ impl Env {
         for _ in 0..ep.start_attempts {
             let x = self.rng.random_range(b.min_x..b.max_x);
             let y = self.rng.random_range(b.min_y..b.max_y);
-            if w.is_valid_start(x, y, ep.start_clearance_m) {
-                let heading = self.rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-                self.reset_to(Pose { x_m: x, y_m: y, heading_rad: heading }, obs);
+            let heading = self.rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+            let pose = Pose { x_m: x, y_m: y, heading_rad: heading };
+            if w.is_valid_start(x, y, ep.start_clearance_m) && (!ep.start_escapable || w.can_circle_from(pose)) {
+                self.reset_to(pose, obs);
                 return Ok(());
             }
         }
-        Err(SimError::NoFreeStart { map: w.map.name.clone(), clearance_m: ep.start_clearance_m, attempts: ep.start_attempts })
+        Err(SimError::NoFreeStart { map: w.map.name.clone(), clearance_m: ep.start_clearance_m, escapable: ep.start_escapable, attempts: ep.start_attempts })
     }
 
     /// Starts an episode at a given pose (evaluation, tests). The pose is not checked.

@@ -190,3 +190,52 @@ fn the_speed_cap_is_the_fastest_rows_metres_per_step() {
         assert!((r.distance_m() / f64::from(r.steps) - 0.034).abs() < 0.001);
     }
 }
+
+/// Table V: the paper evaluates on env3 agents trained elsewhere and finds its "characteristics
+/// … more similar to the first than the second" environment; both SAC agents drive there at
+/// their env1 speed (0.034 m/step). Held here by the scans a policy meets: env3's mean minimum
+/// range lies nearer env1's than env2's, and 99 % of its poses show a nearest obstacle no
+/// farther than the farthest env1 ever shows. (The open rooms of the old env3 failed the
+/// second: 7 % of its poses lay beyond env1's largest, its 99th percentile at 7.9 m.)
+#[test]
+fn env3_shows_a_policy_the_scans_of_env1_as_table_v_says() {
+    let stats = |m: &str| reward_bounds(&world(Map::builtin(m).unwrap()), 0.2, 36);
+    let (e1, e2, e3) = (stats("env1"), stats("env2"), stats("env3"));
+    let m = Map::builtin("env3").unwrap();
+    assert_eq!((m.bounds.width(), m.bounds.height()), (40.0, 40.0));
+    assert!(
+        (e3.mean_min_range_m - e1.mean_min_range_m).abs() < (e3.mean_min_range_m - e2.mean_min_range_m).abs(),
+        "env3 mean {:.2} m, env1 {:.2}, env2 {:.2}",
+        e3.mean_min_range_m,
+        e1.mean_min_range_m,
+        e2.mean_min_range_m
+    );
+    assert!(e3.min_range_percentiles_m[2] <= e1.max_min_range_m, "env3's 99th percentile {:.2} m beyond env1's largest {:.2} m", e3.min_range_percentiles_m[2], e1.max_min_range_m);
+}
+
+/// Table V's env3 episodes last 2,151–2,971 of 3,000 steps for the agents that explore: the
+/// world lets a careful driver go that long. The scripted driver at SAC's 0.034 m/step, from
+/// random starts, reaches 3,000 steps in most episodes.
+#[test]
+fn a_scripted_driver_lasts_table_vs_episodes_on_env3() {
+    let w = world(Map::builtin("env3").unwrap());
+    let vc = &w.cfg.vehicle;
+    let fraction = 0.034 / (vc.v_max_mps * vc.dt_s);
+    let angles = w.cfg.sensor.beam_angles_rad();
+    let mut obs = vec![0.0; w.obs_dim()];
+    let mut full = 0;
+    for seed in 0..8 {
+        let mut env = Env::new(Arc::clone(&w), seed);
+        env.reset(&mut obs).unwrap();
+        let mut steps = 0;
+        while steps < 3000 {
+            let a = baseline::cruise(env.ranges_m(), &angles, w.cfg.sensor.max_range_m, fraction);
+            steps += 1;
+            if env.step(a, &mut obs).unwrap().terminal {
+                break;
+            }
+        }
+        full += u32::from(steps == 3000);
+    }
+    assert!(full >= 6, "only {full} of 8 scripted episodes reached 3,000 steps");
+}

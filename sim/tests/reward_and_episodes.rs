@@ -153,6 +153,7 @@ fn random_starts_are_never_in_collision_and_keep_clearance() {
             let p = env.pose();
             assert!(w.map.is_free(p.x_m, p.y_m), "{map}: start {p:?} not in free space");
             assert!(!w.collide.footprint_collides(p.x_m, p.y_m, p.heading_rad, &w.footprint), "{map}: {p:?}");
+            assert!(w.can_circle_from(p), "{map}: start {p:?} leaves no way on (episode.start_escapable)");
             // Footprint clearance ≥ 0.5 m: every point of the footprint's outline (where the
             // distance to outside obstacles is smallest) is ≥ 0.5 m from every surface.
             let (hl, hw) = (w.footprint.half_length_m, w.footprint.half_width_m);
@@ -171,6 +172,49 @@ fn random_starts_are_never_in_collision_and_keep_clearance() {
             }
         }
     }
+}
+
+/// A start 0.83 m from a wall and facing it keeps the 0.5 m clearance (the centre needs 0.813 m)
+/// but has no way on: the car has no reverse, and at full lock its outer front corner still
+/// reaches 0.845 m ahead. `episode.start_escapable` keeps such starts out; 0.86 m is escapable.
+#[test]
+fn a_start_facing_a_wall_too_close_to_turn_is_refused_one_with_room_is_kept() {
+    let w = world("box", noiseless());
+    let mut obs = vec![0.0; w.obs_dim()];
+    let trapped = Pose { x_m: 0.0, y_m: -12.5 + 0.83, heading_rad: -std::f64::consts::FRAC_PI_2 };
+    assert!(w.can_circle_from(Pose { y_m: -12.5 + 0.86, ..trapped }));
+    assert!(w.is_valid_start(trapped.x_m, trapped.y_m, 0.5), "the clearance rule alone accepts it");
+    assert!(!w.can_circle_from(trapped));
+    // No action held for the whole episode (speed × turn, a 9 × 9 lattice) avoids the wall.
+    let mut env = Env::new(Arc::clone(&w), 5);
+    for i in 0..9 {
+        for j in 0..9 {
+            let a = [-1.0 + 0.25 * i as f32, -1.0 + 0.25 * j as f32];
+            env.reset_to(trapped, &mut obs);
+            let mut crashed = false;
+            for _ in 0..400 {
+                let o = env.step(a, &mut obs).unwrap();
+                if o.terminal {
+                    crashed = true;
+                    break;
+                }
+            }
+            // Standing still (a₁ = −1) is the only way not to hit it.
+            assert_eq!(crashed, i > 0, "action {a:?}");
+        }
+    }
+    // The same spot facing along the wall, or away from it, has a way on.
+    for heading in [0.0, std::f64::consts::FRAC_PI_2, std::f64::consts::PI] {
+        assert!(w.can_circle_from(Pose { heading_rad: heading, ..trapped }), "heading {heading}");
+    }
+    // When no start can be found, the error names the rule only when it is on.
+    let mut cfg = noiseless();
+    cfg.episode.start_clearance_m = 30.0;
+    let err = Env::new(world("box", cfg.clone()), 1).reset(&mut obs).unwrap_err().to_string();
+    assert!(err.contains("start_escapable"), "{err}");
+    cfg.episode.start_escapable = false;
+    let err = Env::new(world("box", cfg), 1).reset(&mut obs).unwrap_err().to_string();
+    assert!(!err.contains("start_escapable"), "{err}");
 }
 
 #[test]
