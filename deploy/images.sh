@@ -11,7 +11,8 @@
 # learner image runs on CPU: libraries that CUDA loads at run time (cuDNN's engines, NVRTC's
 # builtins) are not in the ldd closure, so `device: cuda` needs an image built from a CUDA base.
 #
-# Usage: deploy/images.sh [TAG]   (default TAG: local; also $MAPLESS_PROFILE=release|dev)
+# Usage: deploy/images.sh [TAG]   (default TAG: local; also $MAPLESS_PROFILE=release|dev, and
+# $LIBTORCH to link a libtorch already installed instead of scripts/setup-torch.sh's)
 set -euo pipefail
 root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")/.." && pwd -P)"
 cd "$root"
@@ -19,7 +20,8 @@ tag="${1:-local}"
 profile="${MAPLESS_PROFILE:-release}"
 out_dir="target/$([ "$profile" = dev ] && echo debug || echo "$profile")"
 command -v docker >/dev/null || { echo "images.sh: docker not found" >&2; exit 1; }
-bash scripts/setup-torch.sh
+# A LIBTORCH already set in the environment wins, as in .cargo/config.toml (no install then).
+if [ -z "${LIBTORCH:-}" ]; then bash scripts/setup-torch.sh; fi
 echo "images.sh: building the binaries ($profile)" >&2
 cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay --bins
 

@@ -1,36 +1,56 @@
 #!/usr/bin/env bash
-# deploy/smoke.sh — end-to-end check of the compose cluster (deploy/compose.yaml) on this
-# machine's Docker: builds the images and secrets, starts replay + learner + 2 actors on a
-# private network (gRPC with TLS and a token between containers) and checks, printing each step:
+# deploy/smoke.sh — end-to-end drill of the compose cluster (deploy/compose.yaml) on this
+# machine's Docker: builds the images and secrets, starts replay + learner + $ACTORS actor
+# replicas (`--scale actor=N`, default 4) on a private network (gRPC with TLS and a token between
+# containers) and checks, printing each step and what it measured:
 #
 #   1. the learner samples and updates, and publishes new weights versions;
-#   2. every actor acts with a published policy (version ≥ 2) and the replay acknowledges its batches;
-#   3. an actor process killed with SIGKILL is restarted by Docker and its new incarnation writes;
-#   4. `docker-compose stop` ends the learner with a final checkpoint.
+#   2. N distinct actor ids, on slots 0..N-1, write rows into the replay (its /metrics), and
+#      every replica acts with a published policy (version ≥ 2) with its batches acknowledged;
+#   3. an actor process killed with SIGKILL is restarted by Docker, gets its slot back, and its
+#      new incarnation (a new actor id on the same slot) writes;
+#   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write;
+#   5. `up -d --scale actor=2`: two replicas are left and keep writing;
+#   6. `docker-compose stop` ends the learner with a final checkpoint;
+#   7. `down -v` leaves no container, network or volume of the project behind.
 #
-# Usage: deploy/smoke.sh   (SKIP_IMAGES=1 reuses built images; KEEP=1 leaves the cluster up)
+# Usage: deploy/smoke.sh   (SKIP_IMAGES=1 reuses built images; KEEP=1 leaves the cluster up;
+#                           ACTORS=N replicas at first, default 4)
 # Run it as root (or with sudo): step 3 kills the actor's process from the host, because
-# `docker kill` counts as a deliberate stop and turns the restart policy off.
+# `docker kill` counts as a deliberate stop and turns the restart policy off; and the replay's
+# /metrics is read on its container's loopback (nsenter into its network namespace), since no
+# port is published.
 # Not part of ./test.sh: it needs a Docker engine and builds a multi-GB learner image.
 set -euo pipefail
 here="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$here"
 export MAPLESS_TAG="${MAPLESS_TAG:-local}"
+actors="${ACTORS:-4}"
 [ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
 ./certs.sh
 project=mapless-smoke
 if command -v docker-compose >/dev/null; then compose=(docker-compose); else compose=(docker compose); fi
 dc() { "${compose[@]}" -p "$project" -f compose.yaml "$@"; }
 logs="$(mktemp -d)/compose.log"
+# What is left of the project: containers, networks, volumes (one line each).
+leftovers() {
+    local f="label=com.docker.compose.project=$project"
+    { docker ps -aq --filter "$f"; docker network ls -q --filter "$f"; docker volume ls -q --filter "$f"; } | sed '/^$/d'
+}
 finish() {
     local rc=$?
     dc logs --no-color > "$logs" 2>&1 || true
-    [ "${KEEP:-}" = 1 ] || dc down -v >/dev/null 2>&1 || true
+    if [ "${KEEP:-}" != 1 ]; then
+        dc down -v >/dev/null 2>&1 || true
+        if [ -n "$(leftovers)" ]; then echo "smoke: left behind after down -v:"; leftovers; rc=1; else echo "smoke: ok: down -v left no container, network or volume"; fi
+    fi
     if [ $rc -eq 0 ]; then echo "smoke: PASS (logs: $logs)"; else echo "smoke: FAIL (logs: $logs)"; tail -40 "$logs"; fi
+    exit $rc
 }
 trap finish EXIT
 dc down -v >/dev/null 2>&1 || true
-dc up -d
+started=$SECONDS
+dc up -d --scale actor="$actors"
 
 # wait_for SECONDS WHAT COMMAND...: runs COMMAND every 2 s until it succeeds.
 wait_for() {
@@ -46,32 +66,81 @@ wait_for() {
 learner_field() { dc logs --no-color learner 2>/dev/null | grep -o "\"$1\":[0-9]*" | tail -1 | cut -d: -f2; }
 learner_updates() { local u; u=$(learner_field updates); [ "${u:-0}" -gt 100 ]; }
 learner_versions() { local v; v=$(learner_field weights_version); [ "${v:-0}" -ge 3 ]; }
+
+# The replay's /metrics, read inside its network namespace (it binds its container's loopback).
+replay_metrics() {
+    local pid
+    pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
+    nsenter -t "$pid" -n curl -sf --max-time 5 http://127.0.0.1:9464/metrics
+}
+# Actor ids with rows in the replay, and their row counts: "actor-<slot>-<pid>-<ms> ROWS".
+actor_rows() { replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p' | awk '$2 > 0'; }
+# Their slots, space-separated and sorted: "0 1 2 3".
+slots_writing() { actor_rows | cut -d- -f2 | sort -un | tr '\n' ' ' | sed 's/ $//'; }
+want_slots() { [ "$(slots_writing)" = "$1" ]; }
+# Names holding a slot (the exposition writes floats: "4.0").
+registered() { replay_metrics | sed -n 's/^replay_actor_slots{.*} \([0-9.e+]*\)$/\1/p' | awk '{ printf "%d", $1 }'; }
+# A replica's slot and its current actor id, from its own log.
+slot_of() { docker logs "$1" 2>&1 | grep "registered with the replay" | grep -o ' slot=[0-9]*' | tail -1 | cut -d= -f2; }
+id_of() { docker logs "$1" 2>&1 | grep -o 'actor_id=actor-[^ ]*' | tail -1 | cut -d= -f2; }
+rows_of() { actor_rows | awk -v id="$1" '$1 == id {print $2}'; }
 # An actor's "acting" lines (every 10 s): policy_version=V batches_acked=B actor_id=ID.
 actor_ok() {
-    dc logs --no-color "$1" 2>/dev/null | grep " acting " | awk '
+    docker logs "$1" 2>&1 | grep " acting " | awk '
         { v = 0; b = 0
           for (i = 1; i <= NF; i++) { split($i, kv, "="); if (kv[1] == "policy_version") v = kv[2]; if (kv[1] == "batches_acked") b = kv[2] } }
         v >= 2 && b > 0 { ok = 1 } END { exit !ok }'
 }
-actor_incarnations() {
-    local n
-    n=$(dc logs --no-color "$1" 2>/dev/null | grep " acting " | grep -o 'batches_acked=[1-9][0-9]* .*actor_id=[^ ]*' | grep -o 'actor_id=[^ ]*' | sort -u | wc -l)
-    [ "$n" -ge 2 ]
+seq_slots() { seq -s ' ' 0 $(( $1 - 1 )); }
+show_actors() {
+    echo "smoke: replay: $(registered) names hold slots; actor ids writing (id rows):"
+    actor_rows | sed 's/^/smoke:   /'
 }
 
 wait_for 300 "learner updates > 100" learner_updates
+echo "smoke: $(( SECONDS - started ))s from up to > 100 learner updates"
 wait_for 120 "learner published weights version ≥ 3" learner_versions
-wait_for 120 "actor-0 acts with policy ≥ v2, batches acknowledged" actor_ok actor-0
-wait_for 120 "actor-1 acts with policy ≥ v2, batches acknowledged" actor_ok actor-1
+wait_for 120 "$actors distinct actor ids on slots $(seq_slots "$actors") write to the replay" want_slots "$(seq_slots "$actors")"
+for cid in $(dc ps -q actor); do
+    wait_for 120 "replica ${cid:0:12} (slot $(slot_of "$cid"), $(id_of "$cid")) acts with policy ≥ v2, batches acknowledged" actor_ok "$cid"
+done
+[ "$(registered)" = "$actors" ] || { echo "smoke: the replay holds $(registered) slots, expected $actors" >&2; exit 1; }
+show_actors
 
-cid=$(dc ps -q actor-0)
+cid=$(dc ps -q actor | head -1)
+slot=$(slot_of "$cid"); old_id=$(id_of "$cid")
 pid=$(docker inspect -f '{{.State.Pid}}' "$cid")
-echo "smoke: kill -9 actor-0 (pid $pid on this host)"
+echo "smoke: kill -9 replica ${cid:0:12} (slot $slot, $old_id; pid $pid on this host)"
 kill -9 "$pid"
-wait_for 60 "Docker restarted actor-0" bash -c "[ \"\$(docker inspect -f '{{.RestartCount}}' $cid)\" -ge 1 ]"
-wait_for 120 "actor-0's new incarnation writes" actor_incarnations actor-0
+wait_for 60 "Docker restarted it" bash -c "[ \"\$(docker inspect -f '{{.RestartCount}}' $cid)\" -ge 1 ]"
+new_incarnation_writes() { local id; id=$(id_of "$cid"); [ "$id" != "$old_id" ] && [ -n "$(rows_of "$id")" ]; }
+wait_for 120 "its new incarnation writes" new_incarnation_writes
+new_id=$(id_of "$cid")
+[ "$(slot_of "$cid")" = "$slot" ] || { echo "smoke: the restarted replica got slot $(slot_of "$cid"), not its own $slot" >&2; exit 1; }
+[ "$(registered)" = "$actors" ] || { echo "smoke: a restart took a new slot ($(registered) held)" >&2; exit 1; }
+echo "smoke: ok: the restarted replica kept slot $slot under a new incarnation id $new_id"
+
+more=$(( actors + 2 ))
+dc up -d --scale actor="$more" >/dev/null 2>&1
+wait_for 120 "two new replicas: $more slots $(seq_slots "$more") write" want_slots "$(seq_slots "$more")"
+[ "$(dc ps -q actor | wc -l)" = "$more" ] || { echo "smoke: $(dc ps -q actor | wc -l) actor containers, expected $more" >&2; exit 1; }
+show_actors
+
+dc up -d --scale actor=2 >/dev/null 2>&1
+[ "$(dc ps -q actor | wc -l)" = 2 ] || { echo "smoke: $(dc ps -q actor | wc -l) actor containers after scaling to 2" >&2; exit 1; }
+declare -A before
+for c in $(dc ps -q actor); do id=$(id_of "$c"); before[$id]=$(rows_of "$id"); done
+both_grow() {
+    local id
+    for id in "${!before[@]}"; do
+        [ "$(awk -v a="$(rows_of "$id")" -v b="${before[$id]:-0}" 'BEGIN { print (a > b) }')" = 1 ] || return 1
+    done
+}
+wait_for 120 "scaled to 2: the two replicas left (${!before[*]}) keep writing" both_grow
 echo "smoke: learner at $(learner_field updates) updates, weights v$(learner_field weights_version)"
 
 dc stop -t 60 >/dev/null 2>&1
-dc logs --no-color learner 2>/dev/null | grep -q '"event":"stopped"' || { echo "smoke: the learner did not report its final checkpoint" >&2; exit 1; }
+# Not `grep -q`: it would stop reading at the match, and under pipefail the SIGPIPE that `logs`
+# then gets fails the pipeline.
+dc logs --no-color learner 2>/dev/null | grep '"event":"stopped"' >/dev/null || { echo "smoke: the learner did not report its final checkpoint" >&2; exit 1; }
 echo "smoke: ok: the learner stopped with a final checkpoint"

@@ -5,11 +5,13 @@
 //! - [`noise`]: exploration noise for the deterministic policies (OU for DDPG, Gaussian for TD3);
 //! - [`sink`]: which replay client an actor delivers its transition batches with (iceoryx2 or
 //!   gRPC; the exactly-once clients themselves are `mapless_net::insert`);
+//! - [`identity`]: which index a process runs as (`--index N`, or `auto`: a slot from the replay);
 //! - [`run`]: one actor process's loop (the `mapless-actor` binary).
 //!
 //! How it reaches the replay, the learner's weights and the stats collector (endpoints,
 //! security, the shared-memory writer, the insert, weights and stats clients) is `mapless-net`.
 
+pub mod identity;
 pub mod policy;
 pub mod run;
 pub mod sink;

@@ -16,6 +16,7 @@
 //! - [`shm`]: the shared-memory ingest's settings, wire types and the actors' [`shm::ShmWriter`];
 //! - [`insert`]: the actors' exactly-once delivery of transition batches — [`insert::InsertClient`]
 //!   (gRPC `Insert`) and [`insert::ShmInsertClient`] (over the writer);
+//! - [`register`]: an actor's slot from the replay (`RegisterActor`, for `--index auto`);
 //! - [`sample`]: the learner's prefetching `Sample` client with asynchronous priority updates,
 //!   [`sample::SampleClient`];
 //! - [`weights`]: the checked weights-stream client and a reconnecting follower;
@@ -29,6 +30,7 @@ pub mod endpoint;
 pub mod insert;
 pub mod logging;
 pub mod metrics;
+pub mod register;
 pub mod sample;
 pub mod serve;
 pub mod shm;

@@ -44,6 +44,7 @@ pub mod weights_file;
 
 pub use error::ProtoError;
 pub use floats::{FloatColumn, FloatEncoding, extend_f32le, f32le_bytes};
+pub use replay::check_actor_name;
 pub use transition::{Transition, TransitionBatchBuilder};
 
 /// Messages, services and clients of package `mapless.v1`, generated from
@@ -83,6 +84,11 @@ pub const DEFAULT_TABLE: &str = "transitions";
 /// Longest accepted `actor_id`, in bytes. Ids are keys in the replay server's persistent
 /// de-duplication table and appear in every log line, so they stay short.
 pub const MAX_ACTOR_ID_BYTES: usize = 128;
+
+/// Longest accepted `RegisterActorRequest.name`, in bytes: a DNS host name (at most 63 bytes
+/// per label) or a container id (64 hex digits) fits, and the actor id derived from the slot
+/// stays within [`MAX_ACTOR_ID_BYTES`] whatever the name.
+pub const MAX_ACTOR_NAME_BYTES: usize = 128;
 
 /// Checks a message's `protocol_version` field (the raw `i32` prost stores, so that values
 /// from a newer contract are seen as what they are, not as the default).

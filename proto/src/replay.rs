@@ -1,9 +1,10 @@
 //! Checks on the replay requests that are not transition batches.
 
+use crate::MAX_ACTOR_NAME_BYTES;
 use crate::check_protocol_version;
 use crate::error::ProtoError;
 use crate::transition::check_len;
-use crate::v1::{PriorityUpdate, SampleRequest};
+use crate::v1::{PriorityUpdate, RegisterActorRequest, SampleRequest};
 
 impl SampleRequest {
     /// Checks a request that opens a Sample stream: protocol version, `batch_size` in
@@ -47,4 +48,30 @@ impl PriorityUpdate {
         }
         Ok(keys)
     }
+}
+
+impl RegisterActorRequest {
+    /// Checks a registration: protocol version, and a `name` of 1 to
+    /// [`MAX_ACTOR_NAME_BYTES`] bytes without control characters (it is a key in the
+    /// server's slot file and appears in its logs). Returns the name.
+    pub fn validate(&self) -> Result<&str, ProtoError> {
+        check_protocol_version(self.protocol_version)?;
+        check_actor_name(&self.name)?;
+        Ok(&self.name)
+    }
+}
+
+/// The rule on actor names (see [`RegisterActorRequest::validate`]), for servers that read
+/// names from elsewhere (the replay's slot file) and clients that check before dialling.
+pub fn check_actor_name(name: &str) -> Result<(), ProtoError> {
+    if name.is_empty() {
+        return Err(ProtoError::InvalidField { field: "name", reason: "is empty".to_owned() });
+    }
+    if name.len() > MAX_ACTOR_NAME_BYTES {
+        return Err(ProtoError::InvalidField { field: "name", reason: format!("is {} bytes long, the limit is {MAX_ACTOR_NAME_BYTES}", name.len()) });
+    }
+    if let Some(c) = name.chars().find(|c| c.is_control()) {
+        return Err(ProtoError::InvalidField { field: "name", reason: format!("contains the control character {c:?}") });
+    }
+    Ok(())
 }

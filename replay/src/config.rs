@@ -199,7 +199,8 @@ impl From<FsyncPolicy> for FsyncRepr {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct PersistenceConfig {
-    /// Directory holding `wal/`, `snapshots/` and a `LOCK` file; none = memory only.
+    /// Directory holding `wal/`, `snapshots/`, a `LOCK` file and the actor slots
+    /// (`actor-slots.json`, see `registry.rs`); none = memory only.
     pub dir: Option<std::path::PathBuf>,
     /// A log segment is closed once the next record would take it past this size
     /// [inferred: 64 MiB — ~350,000 default-size rows; deletion works a segment at a time].

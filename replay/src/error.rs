@@ -18,6 +18,9 @@ pub enum ReplayError {
     Closed(String),
     #[error("invalid config: {0}")]
     InvalidConfig(String),
+    /// `RegisterActor` for a new name while every slot the server allows is held.
+    #[error("all {max} actor slots are taken by other names (max_actor_slots in the replay's config); reuse a name or raise the limit")]
+    SlotsExhausted { max: u32 },
     /// Disk trouble in the log or snapshots; names the file.
     #[error("storage {path}: {problem}")]
     Storage { path: std::path::PathBuf, problem: String },
@@ -45,6 +48,7 @@ impl ReplayError {
             ReplayError::DeadlineExceeded { .. } => Status::new(Code::DeadlineExceeded, self.to_string()),
             ReplayError::Closed(_) => Status::new(Code::Unavailable, self.to_string()),
             ReplayError::InvalidConfig(_) => Status::new(Code::FailedPrecondition, self.to_string()),
+            ReplayError::SlotsExhausted { .. } => Status::new(Code::ResourceExhausted, self.to_string()),
             ReplayError::Storage { .. } => Status::new(Code::Internal, self.to_string()),
         }
     }

@@ -39,7 +39,9 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use mapless_proto::v1::replay_service_server::ReplayService;
-use mapless_proto::v1::{InsertAck, PriorityUpdate, PriorityUpdateResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse, TransitionBatch};
+use mapless_proto::v1::{
+    InsertAck, PriorityUpdate, PriorityUpdateResponse, RegisterActorRequest, RegisterActorResponse, SampleRequest, SampledBatch, ServerInfoRequest, ServerInfoResponse, TransitionBatch,
+};
 use mapless_proto::{FloatEncoding, MAX_ACTOR_ID_BYTES, MAX_MESSAGE_BYTES, check_protocol_version};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
@@ -49,6 +51,7 @@ use tracing::{Instrument, debug, info, info_span, warn};
 use crate::actors::ActorStats;
 use crate::config::SamplerConfig;
 use crate::error::ReplayError;
+use crate::registry::ActorRegistry;
 use crate::table::Table;
 
 /// How long a blocked table call waits before checking whether its peer is still there.
@@ -87,6 +90,8 @@ pub struct ReplayGrpc {
     max_sample_streams: u32,
     /// Becomes true when the server stops: open streams end with UNAVAILABLE.
     stopping: Option<watch::Receiver<bool>>,
+    /// Actor name → slot (`RegisterActor`).
+    registry: Arc<ActorRegistry>,
 }
 
 impl ReplayGrpc {
@@ -99,7 +104,15 @@ impl ReplayGrpc {
             sample_streams: Arc::new(Semaphore::new(DEFAULT_MAX_SAMPLE_STREAMS as usize)),
             max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS,
             stopping: None,
+            registry: Arc::default(),
         }
+    }
+
+    /// Answers `RegisterActor` from `registry` (default: a table in memory only, for a server
+    /// without a data directory).
+    pub fn with_registry(mut self, registry: Arc<ActorRegistry>) -> ReplayGrpc {
+        self.registry = registry;
+        self
     }
 
     /// Ends every open stream with UNAVAILABLE once `stopping` turns true (so a graceful
@@ -535,6 +548,34 @@ impl ReplayService for ReplayGrpc {
         check_protocol_version(request.get_ref().protocol_version)?;
         let _span = info_span!("ServerInfo", table = %self.table.config().name).entered();
         Ok(Response::new(server_info(&self.table)))
+    }
+
+    async fn register_actor(&self, request: Request<RegisterActorRequest>) -> Result<Response<RegisterActorResponse>, Status> {
+        let peer = request.remote_addr();
+        let req = request.into_inner();
+        if let Err(e) = check_protocol_version(req.protocol_version) {
+            self.registry.record_refused();
+            return Err(e.into());
+        }
+        // The name is checked (and a refusal counted) by the registry; the span shows at most
+        // MAX_ACTOR_ID_BYTES of whatever was sent.
+        let shown: String = req.name.chars().take(MAX_ACTOR_ID_BYTES).collect();
+        let span = info_span!("RegisterActor", name = %shown, peer = ?peer);
+        let registry = Arc::clone(&self.registry);
+        let inner = span.clone();
+        // Writing the slot file fsyncs: off the runtime's workers.
+        let outcome = tokio::task::spawn_blocking(move || inner.in_scope(|| registry.register(&req.name))).await.map_err(|e| Status::internal(format!("register task failed: {e}")))?;
+        let _enter = span.enter();
+        match outcome {
+            Ok(r) => {
+                info!(slot = r.slot, known = r.known, registered = r.registered, "actor registered");
+                Ok(Response::new(RegisterActorResponse { slot: r.slot, known: r.known, registered: r.registered }))
+            }
+            Err(e) => {
+                warn!(error = %e, "actor registration refused");
+                Err(e.to_status())
+            }
+        }
     }
 }
 

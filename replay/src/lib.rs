@@ -10,7 +10,8 @@
 //! Anchored on DeepMind Reverb (tables, selectors, a rate limiter), with exactly-once inserts
 //! on (actor id, sequence). The table (`table.rs`) lives in memory; [`DurableTable`]
 //! (`persist/`) makes it survive restarts with a write-ahead log and snapshots, and depends on
-//! the table, never the reverse. This crate never links libtorch.
+//! the table, never the reverse. [`ActorRegistry`] (`registry.rs`) gives actor processes their
+//! slots (`RegisterActor`), kept beside the table's files. This crate never links libtorch.
 
 pub mod actors;
 pub mod bench;
@@ -21,6 +22,7 @@ pub mod grpc;
 pub mod metrics;
 pub mod persist;
 pub mod rate_limiter;
+pub mod registry;
 pub mod server;
 pub mod shm;
 mod snapshot;
@@ -32,5 +34,6 @@ pub use actors::ActorStats;
 pub use config::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, SamplerConfig, TableConfig};
 pub use error::ReplayError;
 pub use persist::{DurableTable, RecoveryReport, SnapshotInfo};
+pub use registry::{ActorRegistry, Registration};
 pub use table::{CheckpointMark, Journal, Table, TableCheckpoint};
 pub use wal::StorageFault;

@@ -14,6 +14,8 @@
 //! | `replay_sample_streams_refused_total`         | counter | Sample streams refused (RESOURCE_EXHAUSTED: `max_sample_streams` open) |
 //! | `replay_actor_{rows,batches,duplicate_batches,rejected_batches}_total` | counter | per actor |
 //! | `replay_actor_policy_version_lag`             | gauge   | newest policy seen − this actor's        |
+//! | `replay_actor_slots`                          | gauge   | actor names holding a slot (`RegisterActor`) |
+//! | `replay_actor_registrations_total{outcome}`   | counter | registrations: `new` slot, `known` name, `refused` |
 //!
 //! The liveness gauge is `replay_up`, not `up`: Prometheus writes its own `up` series for
 //! every scrape target, and a scraped sample of that name would collide with it.
@@ -26,16 +28,18 @@ use tokio::net::TcpListener;
 
 use crate::actors::ActorStats;
 use crate::grpc::{newest_policy_version, policy_version_lag};
+use crate::registry::ActorRegistry;
 use crate::table::Table;
 
-/// Serves `GET /metrics` for `table` on `listener` until `shutdown` resolves
-/// (`mapless_net::metrics`, the exporter every process uses).
-pub async fn serve(listener: TcpListener, table: Arc<Table>, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-    mapless_net::metrics::serve(listener, Arc::new(move || render(&table)), shutdown).await
+/// Serves `GET /metrics` for `table` and the actor slots of `registry` on `listener` until
+/// `shutdown` resolves (`mapless_net::metrics`, the exporter every process uses).
+pub async fn serve(listener: TcpListener, table: Arc<Table>, registry: Arc<ActorRegistry>, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
+    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry)), shutdown).await
 }
 
-/// The exposition text for `table`.
-pub fn render(table: &Table) -> String {
+/// The exposition text for `table` and `registry`.
+pub fn render(table: &Table, registry: &ActorRegistry) -> String {
+    let slots = registry.counts();
     let info = table.info();
     let mut actors: Vec<(String, ActorStats)> = table.actors().into_iter().collect();
     actors.sort_by(|a, b| a.0.cmp(&b.0));
@@ -62,6 +66,12 @@ pub fn render(table: &Table) -> String {
         .counters("replay_actor_batches", "Batches inserted per actor (duplicates excluded).", per_actor(&|a| a.batches as f64))
         .counters("replay_actor_duplicate_batches", "Batches acknowledged as duplicates (retransmissions) per actor.", per_actor(&|a| a.duplicate_batches as f64))
         .counters("replay_actor_rejected_batches", "Batches refused as invalid per actor.", per_actor(&|a| a.rejected_batches as f64))
-        .gauges("replay_actor_policy_version_lag", "Newest policy_version seen across actors minus this actor's newest.", per_actor(&|a| policy_version_lag(newest, a) as f64));
+        .gauges("replay_actor_policy_version_lag", "Newest policy_version seen across actors minus this actor's newest.", per_actor(&|a| policy_version_lag(newest, a) as f64))
+        .gauges("replay_actor_slots", "Actor names holding a slot (RegisterActor; mapless-actor --index auto).", table_only(slots.registered as f64))
+        .counters(
+            "replay_actor_registrations",
+            "RegisterActor calls: a new slot given out, a known name answered, or refused (bad name, no slot left, slot file not written).",
+            [("new", slots.new), ("known", slots.known), ("refused", slots.refused)].map(|(outcome, n)| (labels([("table", t), ("outcome", outcome)]), n as f64)),
+        );
     x.text()
 }

@@ -31,6 +31,7 @@ use tracing::info;
 use crate::config::{PersistenceConfig, TableConfig};
 use crate::error::ReplayError;
 use crate::grpc::{DEFAULT_MAX_PREFETCH, DEFAULT_MAX_SAMPLE_STREAMS, ReplayGrpc};
+use crate::registry::{ActorRegistry, DEFAULT_MAX_ACTOR_SLOTS};
 use crate::table::Table;
 
 /// Default gRPC address: loopback only.
@@ -82,6 +83,12 @@ pub struct ServerConfig {
     /// Shared-memory ingest settings; none derives them from the table name
     /// (`mapless/replay/<table>`).
     pub shm: Option<mapless_net::shm::ShmConfig>,
+    /// Most actor names that may hold a slot (`RegisterActor`, `mapless-actor --index auto`);
+    /// a new name beyond it is refused with RESOURCE_EXHAUSTED. Slots are never released, so
+    /// this bounds the names ever registered with this data directory [default: 4096 — one
+    /// actor process per core of a large cluster; the bound keeps a client that invents names
+    /// from growing the slot file without limit]. Must be ≥ 1.
+    pub max_actor_slots: u32,
 }
 
 impl Default for ServerConfig {
@@ -100,6 +107,7 @@ impl Default for ServerConfig {
             persistence: PersistenceConfig::default(),
             shm_enabled: true,
             shm: None,
+            max_actor_slots: DEFAULT_MAX_ACTOR_SLOTS,
         }
     }
 }
@@ -147,6 +155,9 @@ impl ServerConfig {
         if self.max_sample_streams == 0 {
             return Err(ReplayError::InvalidConfig("max_sample_streams must be ≥ 1 (it bounds the Sample streams open at once)".into()).into());
         }
+        if self.max_actor_slots == 0 {
+            return Err(ReplayError::InvalidConfig("max_actor_slots must be ≥ 1 (it bounds the actor names that may register)".into()).into());
+        }
         if !self.listen.ip().is_loopback() && (self.tls.is_none() || self.auth_token_file.is_none()) {
             return Err(ServerError::Insecure { addr: self.listen });
         }
@@ -158,9 +169,23 @@ impl ServerConfig {
         Ok(Security::read(self.tls.as_ref(), self.auth_token_file.as_deref())?)
     }
 
-    /// What [`serve`] needs besides the listener and the table.
+    /// What [`serve`] needs besides the listener and the table (with an actor-slot table in
+    /// memory; [`ServerConfig::open_registry`] loads the durable one).
     pub fn serve_options(&self) -> Result<ServeOptions, ServerError> {
-        Ok(ServeOptions { security: self.security()?, max_prefetch: self.max_prefetch, max_sample_streams: self.max_sample_streams, shutdown_grace: Duration::from_millis(self.shutdown_grace_ms) })
+        Ok(ServeOptions {
+            security: self.security()?,
+            max_prefetch: self.max_prefetch,
+            max_sample_streams: self.max_sample_streams,
+            shutdown_grace: Duration::from_millis(self.shutdown_grace_ms),
+            registry: Arc::new(ActorRegistry::in_memory(self.max_actor_slots)),
+        })
+    }
+
+    /// The actor-slot table kept in `persistence.dir` (in memory without one), loaded from its
+    /// file. Open the table first: [`crate::DurableTable::open`] locks the directory against a
+    /// second replay, which would hand out the same slots.
+    pub fn open_registry(&self) -> Result<ActorRegistry, ServerError> {
+        Ok(ActorRegistry::open(self.persistence.dir.as_deref(), self.max_actor_slots)?)
     }
 }
 
@@ -172,11 +197,19 @@ pub struct ServeOptions {
     /// See [`ServerConfig::max_sample_streams`].
     pub max_sample_streams: u32,
     pub shutdown_grace: Duration,
+    /// Actor name → slot, answered by `RegisterActor` (default: in memory only).
+    pub registry: Arc<ActorRegistry>,
 }
 
 impl Default for ServeOptions {
     fn default() -> Self {
-        ServeOptions { security: Security::default(), max_prefetch: DEFAULT_MAX_PREFETCH, max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS, shutdown_grace: Duration::from_secs(5) }
+        ServeOptions {
+            security: Security::default(),
+            max_prefetch: DEFAULT_MAX_PREFETCH,
+            max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS,
+            shutdown_grace: Duration::from_secs(5),
+            registry: Arc::default(),
+        }
     }
 }
 
@@ -193,7 +226,7 @@ pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptio
     let name = table.config().name.clone();
     info!(table = %name, "replay gRPC starting");
     let make = |auth, stop| {
-        let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_max_sample_streams(options.max_sample_streams).with_shutdown(stop);
+        let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_max_sample_streams(options.max_sample_streams).with_registry(Arc::clone(&options.registry)).with_shutdown(stop);
         let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
         Routes::new(InterceptedService::new(service, auth))
     };

@@ -11,10 +11,12 @@ use std::time::{Duration, Instant};
 
 use mapless_net::{Security, TlsPem};
 use mapless_proto::v1::replay_service_client::ReplayServiceClient;
-use mapless_proto::v1::{InsertAck, PriorityUpdate, ProtocolVersion, SampleRequest, SampledBatch, Selector, ServerInfoRequest, ServerInfoResponse, TransitionBatch};
+use mapless_proto::v1::{
+    InsertAck, PriorityUpdate, ProtocolVersion, RegisterActorRequest, RegisterActorResponse, SampleRequest, SampledBatch, Selector, ServerInfoRequest, ServerInfoResponse, TransitionBatch,
+};
 use mapless_proto::{FloatEncoding, MAX_MESSAGE_BYTES, Transition, TransitionBatchBuilder};
 use mapless_replay::server::{ServeOptions, ServerError, run, serve};
-use mapless_replay::{RateLimiterConfig, SamplerConfig, Table, TableConfig, metrics};
+use mapless_replay::{ActorRegistry, RateLimiterConfig, SamplerConfig, Table, TableConfig, metrics};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
@@ -725,7 +727,7 @@ async fn a_thousand_sample_streams_are_each_served_or_refused_and_inserts_and_up
 
     // Refusals are counted, in /metrics too.
     assert_eq!(h.table.sample_streams_refused(), refused as u64);
-    let samples = parse_exposition(&metrics::render(&h.table));
+    let samples = parse_exposition(&metrics::render(&h.table, &ActorRegistry::default()));
     let counted = samples.iter().find(|(s, _)| s == r#"replay_sample_streams_refused_total{table="transitions"}"#).expect("refusal counter exported");
     assert_eq!(counted.1, refused as f64);
 
@@ -802,7 +804,7 @@ async fn metrics_endpoint_serves_prometheus_text() {
     let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("addr");
     let (stop, stopped) = oneshot::channel::<()>();
-    let server = tokio::spawn(metrics::serve(listener, Arc::clone(&h.table), async {
+    let server = tokio::spawn(metrics::serve(listener, Arc::clone(&h.table), Arc::default(), async {
         let _ = stopped.await;
     }));
     let (status, headers, body) = tokio::task::spawn_blocking(move || http_get(addr, "/metrics")).await.expect("get");
@@ -843,6 +845,44 @@ async fn non_loopback_listener_without_tls_and_token_is_refused() {
     assert!(matches!(serve(listener, table, token_only, std::future::pending()).await, Err(ServerError::Insecure { .. })));
 }
 
+async fn register(client: &mut ReplayServiceClient<Channel>, name: &str) -> Result<RegisterActorResponse, Status> {
+    within("register", client.register_actor(RegisterActorRequest { protocol_version: V1, name: name.to_owned() })).await.map(tonic::Response::into_inner)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn register_actor_gives_each_name_its_own_slot_and_refuses_bad_input_with_precise_statuses() {
+    let registry = Arc::new(ActorRegistry::in_memory(3));
+    let h = Harness::start_with(table_cfg(100), ServeOptions { registry: Arc::clone(&registry), ..ServeOptions::default() }).await;
+    let mut client = h.client().await;
+    let slot = |r: RegisterActorResponse| (r.slot, r.known, r.registered);
+    assert_eq!(slot(register(&mut client, "3f9a1c2b7d4e").await.expect("first name")), (0, false, 1));
+    assert_eq!(slot(register(&mut client, "8e7d6c5b4a39").await.expect("second name")), (1, false, 2));
+    assert_eq!(slot(register(&mut client, "3f9a1c2b7d4e").await.expect("same name again")), (0, true, 2));
+
+    let refused = |r: Result<RegisterActorResponse, Status>| r.expect_err("refused");
+    let empty = refused(register(&mut client, "").await);
+    assert!(empty.code() == Code::InvalidArgument && empty.message().contains("is empty"), "{empty:?}");
+    let long = refused(register(&mut client, &"h".repeat(129)).await);
+    assert!(long.code() == Code::InvalidArgument && long.message().contains("129 bytes"), "{long:?}");
+    let control = refused(register(&mut client, "a\nb").await);
+    assert_eq!(control.code(), Code::InvalidArgument, "{control:?}");
+    let old = refused(within("register", client.register_actor(RegisterActorRequest { protocol_version: 0, name: "x".into() })).await.map(tonic::Response::into_inner));
+    assert_eq!(old.code(), Code::FailedPrecondition, "{old:?}");
+    assert_eq!(slot(register(&mut client, "third").await.expect("the last slot")), (2, false, 3));
+    let full = refused(register(&mut client, "fourth").await);
+    assert!(full.code() == Code::ResourceExhausted && full.message().contains("max_actor_slots"), "{full:?}");
+    assert_eq!(slot(register(&mut client, "8e7d6c5b4a39").await.expect("known names still answered")), (1, true, 3));
+
+    // Every outcome is counted in /metrics.
+    let samples = parse_exposition(&metrics::render(&h.table, &registry));
+    let value = |series: &str| samples.iter().find(|(s, _)| s == series).map(|(_, v)| *v).unwrap_or_else(|| panic!("{series} missing: {samples:?}"));
+    assert_eq!(value(r#"replay_actor_slots{table="transitions"}"#), 3.0);
+    assert_eq!(value(r#"replay_actor_registrations_total{table="transitions",outcome="new"}"#), 3.0);
+    assert_eq!(value(r#"replay_actor_registrations_total{table="transitions",outcome="known"}"#), 2.0);
+    assert_eq!(value(r#"replay_actor_registrations_total{table="transitions",outcome="refused"}"#), 5.0);
+    h.shutdown().await;
+}
+
 fn with_token<T>(msg: T, token: &str) -> Request<T> {
     let mut r = Request::new(msg);
     r.metadata_mut().insert("authorization", format!("Bearer {token}").parse().expect("ascii"));
@@ -861,6 +901,10 @@ async fn bearer_token_is_checked_on_every_call() {
     assert!(acks.is_empty());
     assert_eq!(end.map(|s| s.code()), Some(Code::Unauthenticated));
     client.server_info(with_token(ask, "open-sesame")).await.expect("right token");
+    let reg = RegisterActorRequest { protocol_version: V1, name: "host-z".into() };
+    assert_eq!(client.register_actor(reg.clone()).await.expect_err("no token").code(), Code::Unauthenticated);
+    assert_eq!(client.register_actor(with_token(reg.clone(), "open-sesam")).await.expect_err("wrong token").code(), Code::Unauthenticated);
+    assert_eq!(client.register_actor(with_token(reg, "open-sesame")).await.expect("right token").into_inner().slot, 0);
     let acks = client.insert(with_token(tokio_stream::iter(vec![batch("actor-z", 1, 0.0, 1)]), "open-sesame")).await;
     let ack = acks.expect("insert").into_inner().message().await.expect("ack").expect("ack");
     assert_eq!(ack.sequence, 1);
@@ -1017,6 +1061,9 @@ async fn binary_with_a_data_dir_restores_acknowledged_rows_after_a_restart() {
     let mut client = connect(addr).await;
     let (acks, end) = insert_all(&mut client, (1..=3).map(|s| batch("actor-p", s, s as f32 * 10.0, 5)).collect()).await;
     assert!(end.is_none() && acks.len() == 3, "{end:?}");
+    for (name, slot) in [("host-a", 0), ("host-b", 1)] {
+        assert_eq!(register(&mut client, name).await.expect("register").slot, slot);
+    }
     drop(client);
     tokio::task::spawn_blocking(move || stop(child)).await.expect("stopped");
 
@@ -1026,7 +1073,24 @@ async fn binary_with_a_data_dir_restores_acknowledged_rows_after_a_restart() {
     let (acks, end) = insert_all(&mut client, vec![batch("actor-p", 3, 30.0, 5), batch("actor-p", 4, 40.0, 5)]).await;
     assert!(end.is_none(), "{end:?}");
     assert_eq!(acks.iter().map(|a| (a.sequence, a.duplicate)).collect::<Vec<_>>(), vec![(3, true), (4, false)], "de-duplication survives the restart");
+    // The actor slots came back from the data directory too.
+    let b = register(&mut client, "host-b").await.expect("register");
+    assert_eq!((b.slot, b.known, b.registered), (1, true, 2));
+    assert_eq!(register(&mut client, "host-c").await.expect("register").slot, 2);
     drop(client);
     tokio::task::spawn_blocking(move || stop(child)).await.expect("stopped");
+
+    // A slot file that is not one stops the replay with a message naming it, not a panic and
+    // not a fresh table (which would hand the same slots out again).
+    std::fs::write(dir.join("actor-slots.json"), b"{\"version\": 1, \"slots\": {\"host-a\": 0, \"host-b\": 0}}").expect("write");
+    let mut all: Vec<&str> = args.to_vec();
+    all.push(dir.to_str().expect("utf-8 temp dir"));
+    let mut child = spawn_binary(&all);
+    let exit = wait_exit(&mut child, PATIENCE);
+    let mut err = String::new();
+    child.stderr.take().expect("stderr").read_to_string(&mut err).expect("stderr");
+    assert!(!exit.success(), "{err}");
+    assert!(err.contains("actor-slots.json") && err.contains("not a valid actor-slot file") && err.contains("slot 0 is held by both"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }

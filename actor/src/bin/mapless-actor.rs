@@ -4,6 +4,7 @@
 //!
 //! ```text
 //!   mapless-actor --config run/actor.yaml --index 3 [--max-steps N] [--log-json]
+//!   mapless-actor --config actor.yaml --index auto [--name NAME]   # a slot from the replay
 //! ```
 //! Runs until SIGINT/SIGTERM (then sends what it holds and waits for the acknowledgements),
 //! or until `--max-steps` vehicle-steps; prints its final counters as one JSON line.
@@ -15,6 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context as _;
 use clap::Parser;
+use mapless_actor::identity::{IndexArg, resolve_index};
 use mapless_actor::run::{ActorConfig, incarnation_id, run};
 
 #[derive(Parser)]
@@ -23,9 +25,15 @@ struct Cli {
     /// Actor config (YAML; `mapless train` writes one into the run folder).
     #[arg(long)]
     config: PathBuf,
-    /// This process's index (seeds and the actor id derive from it).
-    #[arg(long, default_value_t = 0)]
-    index: usize,
+    /// This process's index (seeds and the actor id derive from it), or `auto`: register
+    /// `--name` with the replay (gRPC) and take the slot it gives that name — the same slot
+    /// every time, also after a restart — so identical replicas need no per-replica config.
+    #[arg(long, default_value = "0")]
+    index: IndexArg,
+    /// The name `--index auto` registers under; stable across restarts of this actor (one
+    /// name, one slot) [default: the host name, i.e. the container's].
+    #[arg(long, env = "MAPLESS_ACTOR_NAME")]
+    name: Option<String>,
     /// Stop after this many vehicle-steps.
     #[arg(long)]
     max_steps: Option<u64>,
@@ -40,9 +48,8 @@ struct Cli {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     mapless_net::logging::init(cli.log_json, "info,iceoryx2=warn");
-    let actor_id = incarnation_id(cli.index);
-    mapless_net::logging::identify(&[("run", &cli.run), ("role", "actor"), ("actor_id", &actor_id)]);
-    match main_inner(&cli, &actor_id) {
+    mapless_net::logging::identify(&[("run", &cli.run), ("role", "actor")]);
+    match main_inner(&cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             tracing::error!("{e:#}");
@@ -51,7 +58,7 @@ fn main() -> ExitCode {
     }
 }
 
-fn main_inner(cli: &Cli, actor_id: &str) -> anyhow::Result<()> {
+fn main_inner(cli: &Cli) -> anyhow::Result<()> {
     let text = std::fs::read_to_string(&cli.config).with_context(|| format!("reading {}", cli.config.display()))?;
     let cfg: ActorConfig = serde_yaml::from_str(&text).with_context(|| format!("parsing {}", cli.config.display()))?;
     let stop = Arc::new(AtomicBool::new(false));
@@ -62,8 +69,14 @@ fn main_inner(cli: &Cli, actor_id: &str) -> anyhow::Result<()> {
         tracing::info!("signal received; stopping");
         on_signal.store(true, Ordering::Relaxed);
     })?;
-    tracing::info!(map = %cfg.map, vehicles = cfg.vehicles, "actor starting");
-    let report = run(&cfg, cli.index, actor_id, stop, cli.max_steps)?;
+    let Some(index) = resolve_index(&cfg, cli.index, cli.name.as_deref(), &stop)? else {
+        tracing::info!("stopped before the replay gave this actor a slot");
+        return Ok(());
+    };
+    let actor_id = incarnation_id(index);
+    mapless_net::logging::identify(&[("run", &cli.run), ("role", "actor"), ("actor_id", &actor_id)]);
+    tracing::info!(map = %cfg.map, vehicles = cfg.vehicles, index, "actor starting");
+    let report = run(&cfg, index, &actor_id, stop, cli.max_steps)?;
     println!("{}", serde_json::to_string(&report)?);
     Ok(())
 }

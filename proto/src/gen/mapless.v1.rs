@@ -162,6 +162,31 @@ pub struct TransitionBatch {
     #[prost(bytes = "bytes", tag = "19")]
     pub next_obs_f32le: ::prost::bytes::Bytes,
 }
+/// Asks for an actor slot.
+#[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct RegisterActorRequest {
+    /// Contract version the client speaks. Must be PROTOCOL_VERSION_V1.
+    #[prost(enumeration = "ProtocolVersion", tag = "1")]
+    pub protocol_version: i32,
+    /// A name that stays the same across restarts of the actor, e.g. its container's host name.
+    /// 1 to 128 bytes of UTF-8, no control characters.
+    #[prost(string, tag = "2")]
+    pub name: ::prost::alloc::string::String,
+}
+/// The slot of a name.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, ::prost::Message)]
+pub struct RegisterActorResponse {
+    /// The name's slot: 0, 1, 2, ... (the lowest free one for a new name).
+    #[prost(uint32, tag = "1")]
+    pub slot: u32,
+    /// True when the name already held this slot (a restarted actor); false when it was given
+    /// out now.
+    #[prost(bool, tag = "2")]
+    pub known: bool,
+    /// Names holding a slot after this call.
+    #[prost(uint32, tag = "3")]
+    pub registered: u32,
+}
 /// Acknowledges one TransitionBatch of an Insert stream, after it is durable.
 #[derive(Clone, PartialEq, Eq, Hash, ::prost::Message)]
 pub struct InsertAck {
@@ -793,6 +818,48 @@ pub mod replay_service_client {
                 .insert(GrpcMethod::new("mapless.v1.ReplayService", "ServerInfo"));
             self.inner.unary(req, path, codec).await
         }
+        /// Gives an actor process a slot: a small number, unique among the names the server has
+        /// seen, from which the actor derives its actor_id prefix and its random seeds, as it would
+        /// from a fixed index (`mapless-actor --index auto`). Replicas of one container image thus
+        /// draw different seeds without per-replica configuration.
+        ///
+        /// Message order (unary): RegisterActorRequest -> RegisterActorResponse.
+        ///
+        /// The server keeps the name -> slot table durably (in its data directory, when it has one)
+        /// and writes it before it answers: the same name always gets the same slot back, also after
+        /// a restart of the server, and a new name gets the lowest slot no name holds. Slots are
+        /// never released. A slot is not an actor_id: each incarnation of an actor still sends under
+        /// an actor_id of its own (`actor-<slot>-...`), so a restarted actor never reuses its
+        /// predecessor's sequence numbers and delivery stays exactly-once.
+        ///
+        /// Errors: FAILED_PRECONDITION (protocol_version); INVALID_ARGUMENT (name empty, longer
+        /// than 128 bytes, or with control characters); RESOURCE_EXHAUSTED (every slot the server
+        /// allows is taken by other names); INTERNAL (the table could not be written; no slot was
+        /// given out). Refusals are counted in the server's metrics.
+        pub async fn register_actor(
+            &mut self,
+            request: impl tonic::IntoRequest<super::RegisterActorRequest>,
+        ) -> std::result::Result<
+            tonic::Response<super::RegisterActorResponse>,
+            tonic::Status,
+        > {
+            self.inner
+                .ready()
+                .await
+                .map_err(|e| {
+                    tonic::Status::unknown(
+                        format!("Service was not ready: {}", e.into()),
+                    )
+                })?;
+            let codec = tonic_prost::ProstCodec::default();
+            let path = http::uri::PathAndQuery::from_static(
+                "/mapless.v1.ReplayService/RegisterActor",
+            );
+            let mut req = request.into_request();
+            req.extensions_mut()
+                .insert(GrpcMethod::new("mapless.v1.ReplayService", "RegisterActor"));
+            self.inner.unary(req, path, codec).await
+        }
     }
 }
 /// Generated server implementations.
@@ -905,6 +972,31 @@ pub mod replay_service_server {
             request: tonic::Request<super::ServerInfoRequest>,
         ) -> std::result::Result<
             tonic::Response<super::ServerInfoResponse>,
+            tonic::Status,
+        >;
+        /// Gives an actor process a slot: a small number, unique among the names the server has
+        /// seen, from which the actor derives its actor_id prefix and its random seeds, as it would
+        /// from a fixed index (`mapless-actor --index auto`). Replicas of one container image thus
+        /// draw different seeds without per-replica configuration.
+        ///
+        /// Message order (unary): RegisterActorRequest -> RegisterActorResponse.
+        ///
+        /// The server keeps the name -> slot table durably (in its data directory, when it has one)
+        /// and writes it before it answers: the same name always gets the same slot back, also after
+        /// a restart of the server, and a new name gets the lowest slot no name holds. Slots are
+        /// never released. A slot is not an actor_id: each incarnation of an actor still sends under
+        /// an actor_id of its own (`actor-<slot>-...`), so a restarted actor never reuses its
+        /// predecessor's sequence numbers and delivery stays exactly-once.
+        ///
+        /// Errors: FAILED_PRECONDITION (protocol_version); INVALID_ARGUMENT (name empty, longer
+        /// than 128 bytes, or with control characters); RESOURCE_EXHAUSTED (every slot the server
+        /// allows is taken by other names); INTERNAL (the table could not be written; no slot was
+        /// given out). Refusals are counted in the server's metrics.
+        async fn register_actor(
+            &self,
+            request: tonic::Request<super::RegisterActorRequest>,
+        ) -> std::result::Result<
+            tonic::Response<super::RegisterActorResponse>,
             tonic::Status,
         >;
     }
@@ -1162,6 +1254,51 @@ pub mod replay_service_server {
                     let inner = self.inner.clone();
                     let fut = async move {
                         let method = ServerInfoSvc(inner);
+                        let codec = tonic_prost::ProstCodec::default();
+                        let mut grpc = tonic::server::Grpc::new(codec)
+                            .apply_compression_config(
+                                accept_compression_encodings,
+                                send_compression_encodings,
+                            )
+                            .apply_max_message_size_config(
+                                max_decoding_message_size,
+                                max_encoding_message_size,
+                            );
+                        let res = grpc.unary(method, req).await;
+                        Ok(res)
+                    };
+                    Box::pin(fut)
+                }
+                "/mapless.v1.ReplayService/RegisterActor" => {
+                    #[allow(non_camel_case_types)]
+                    struct RegisterActorSvc<T: ReplayService>(pub Arc<T>);
+                    impl<
+                        T: ReplayService,
+                    > tonic::server::UnaryService<super::RegisterActorRequest>
+                    for RegisterActorSvc<T> {
+                        type Response = super::RegisterActorResponse;
+                        type Future = BoxFuture<
+                            tonic::Response<Self::Response>,
+                            tonic::Status,
+                        >;
+                        fn call(
+                            &mut self,
+                            request: tonic::Request<super::RegisterActorRequest>,
+                        ) -> Self::Future {
+                            let inner = Arc::clone(&self.0);
+                            let fut = async move {
+                                <T as ReplayService>::register_actor(&inner, request).await
+                            };
+                            Box::pin(fut)
+                        }
+                    }
+                    let accept_compression_encodings = self.accept_compression_encodings;
+                    let send_compression_encodings = self.send_compression_encodings;
+                    let max_decoding_message_size = self.max_decoding_message_size;
+                    let max_encoding_message_size = self.max_encoding_message_size;
+                    let inner = self.inner.clone();
+                    let fut = async move {
+                        let method = RegisterActorSvc(inner);
                         let codec = tonic_prost::ProstCodec::default();
                         let mut grpc = tonic::server::Grpc::new(codec)
                             .apply_compression_config(

@@ -203,7 +203,7 @@ async fn start(cli: Cli) -> Result<()> {
     run(cfg, options).instrument(span).await
 }
 
-async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -> Result<()> {
+async fn run(cfg: ServerConfig, mut options: mapless_replay::server::ServeOptions) -> Result<()> {
     // ── Table construction: the one place the table is built. ───────────────────────────
     // DurableTable::open restores what `persistence.dir` (--data-dir) holds; with no dir the
     // table lives in memory only. Opening replays the log, so it runs off the async runtime.
@@ -216,6 +216,12 @@ async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -
         }
     }
     let table = Arc::clone(durable.table());
+    // Actor slots (`RegisterActor`) live beside the table's files, under the table's lock.
+    let registry = Arc::new(cfg.open_registry().context("loading the actor slots")?);
+    if let Some(path) = registry.path() {
+        info!(path = %path.display(), registered = registry.counts().registered, max = registry.max_slots(), "actor slots loaded");
+    }
+    options.registry = Arc::clone(&registry);
     // ─────────────────────────────────────────────────────────────────────────────────────
 
     // Same-host actors write over shared memory into the same table (cleans stale iceoryx2
@@ -244,9 +250,9 @@ async fn run(cfg: ServerConfig, options: mapless_replay::server::ServeOptions) -
             let maddr = l.local_addr()?;
             info!(addr = %maddr, "metrics serving");
             println!("metrics on http://{maddr}/metrics");
-            let table = Arc::clone(&table);
+            let (table, registry) = (Arc::clone(&table), Arc::clone(&registry));
             let rx = stop_rx.clone();
-            Some(tokio::spawn(async move { metrics::serve(l, table, stopped(rx)).await }.in_current_span()))
+            Some(tokio::spawn(async move { metrics::serve(l, table, registry, stopped(rx)).await }.in_current_span()))
         }
         None => None,
     };
