@@ -737,7 +737,8 @@ pub mod replay_service_client {
         ///
         /// Errors at the start: FAILED_PRECONDITION (protocol_version), NOT_FOUND (table),
         /// INVALID_ARGUMENT (batch_size 0 or above the server's row limit, importance_beta not in
-        /// \[0, 1\]).
+        /// \[0, 1\]), RESOURCE_EXHAUSTED (the server's `max_sample_streams` Sample streams are open;
+        /// the message names the limit; counted in `replay_sample_streams_refused_total`).
         pub async fn sample(
             &mut self,
             request: impl tonic::IntoRequest<super::SampleRequest>,
@@ -947,7 +948,8 @@ pub mod replay_service_server {
         ///
         /// Errors at the start: FAILED_PRECONDITION (protocol_version), NOT_FOUND (table),
         /// INVALID_ARGUMENT (batch_size 0 or above the server's row limit, importance_beta not in
-        /// \[0, 1\]).
+        /// \[0, 1\]), RESOURCE_EXHAUSTED (the server's `max_sample_streams` Sample streams are open;
+        /// the message names the limit; counted in `replay_sample_streams_refused_total`).
         async fn sample(
             &self,
             request: tonic::Request<super::SampleRequest>,
