@@ -75,12 +75,12 @@ pub struct CardEval {
 }
 
 impl CardEval {
-    fn from_summary(map: &str, episodes: u32, max_steps: u32, check: bool, s: &EvalSummary) -> CardEval {
+    fn from_summary(map: &str, episodes: u32, max_steps: u32, seed: u64, check: bool, s: &EvalSummary) -> CardEval {
         CardEval {
             map: map.to_owned(),
             episodes,
             max_steps,
-            seed: CARD_SEED,
+            seed,
             check,
             mean_steps: s.mean_steps,
             collisions: s.collisions,
@@ -172,6 +172,26 @@ fn run_eval(dir: &Path, env: &EnvConfig, map: &str, episodes: u32, max_steps: u3
     eval::evaluate(&dir.join("policy.safetensors"), map, &env, episodes, seed, out)
 }
 
+/// Evaluates one row of `name`'s card (the policy in `dir`): prints it, keeps the env3 sheet of a
+/// full row as `dir/sheet-env3.png` (`sheets` holds the pictures of row `k`) and returns the row.
+#[allow(clippy::too_many_arguments)]
+fn evaluate_row(dir: &Path, name: &str, env: &EnvConfig, map: &str, episodes: u32, max_steps: u32, seed: u64, check: bool, sheets: &Path, k: usize) -> Result<CardEval> {
+    let out = sheets.join(k.to_string());
+    let s = run_eval(dir, env, map, episodes, max_steps, seed, Some(&out))?;
+    eprintln!("  {name}: {}{}", s.one_line(), if check { " (check)" } else { "" });
+    if map == "env3" && !check {
+        std::fs::copy(out.join("sheet.png"), dir.join("sheet-env3.png"))?;
+    }
+    Ok(CardEval::from_summary(map, episodes, max_steps, seed, check, &s))
+}
+
+/// Writes both halves of a card, `card.json` and `card.md`, into `dir`.
+fn write_card(dir: &Path, card: &Card) -> Result<()> {
+    mapless_proto::atomic_file::write_file_atomically(&dir.join(CARD_JSON), serde_json::to_string_pretty(card)?.as_bytes())?;
+    mapless_proto::atomic_file::write_file_atomically(&dir.join("card.md"), card_markdown(card).as_bytes())?;
+    Ok(())
+}
+
 /// Copies a finished run into `policies/NAME`, evaluates it and writes its card.
 pub fn ship(run: &Path, name: &str, into: &Path, extra: &[String], command: Option<&str>, force: bool) -> Result<Card> {
     if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_') {
@@ -198,13 +218,7 @@ pub fn ship(run: &Path, name: &str, into: &Path, extra: &[String], command: Opti
     let sheets = tempfile::tempdir()?;
     let mut evaluations = Vec::new();
     for (k, (map, episodes, max_steps, check)) in planned(&cfg.map, cfg.env.episode.max_steps, extra).into_iter().enumerate() {
-        let out = sheets.path().join(k.to_string());
-        let s = run_eval(&dir, &cfg.env, &map, episodes, max_steps, CARD_SEED, Some(&out))?;
-        eprintln!("  {name}: {}{}", s.one_line(), if check { " (check)" } else { "" });
-        if map == "env3" && !check {
-            std::fs::copy(out.join("sheet.png"), dir.join("sheet-env3.png"))?;
-        }
-        evaluations.push(CardEval::from_summary(&map, episodes, max_steps, check, &s));
+        evaluations.push(evaluate_row(&dir, name, &cfg.env, &map, episodes, max_steps, CARD_SEED, check, sheets.path(), k)?);
     }
     let seed = cfg.seed;
     let card = Card {
@@ -222,8 +236,7 @@ pub fn ship(run: &Path, name: &str, into: &Path, extra: &[String], command: Opti
         shipped_by: format!("mapless {}", env!("CARGO_PKG_VERSION")),
         evaluations,
     };
-    mapless_proto::atomic_file::write_file_atomically(&dir.join(CARD_JSON), serde_json::to_string_pretty(&card)?.as_bytes())?;
-    mapless_proto::atomic_file::write_file_atomically(&dir.join("card.md"), card_markdown(&card).as_bytes())?;
+    write_card(&dir, &card)?;
     Ok(card)
 }
 
@@ -307,7 +320,7 @@ pub fn check(dir: &Path) -> Result<Vec<String>> {
     let env = read_run_config(dir)?.env;
     for e in checks {
         let s = run_eval(dir, &env, &e.map, e.episodes, e.max_steps, e.seed, None)?;
-        let now = CardEval::from_summary(&e.map, e.episodes, e.max_steps, true, &s);
+        let now = CardEval::from_summary(&e.map, e.episodes, e.max_steps, e.seed, true, &s);
         diffs.extend(e.differences(&now).into_iter().map(|d| format!("{} on {}: {d}", card.name, e.map)));
     }
     Ok(diffs)
@@ -323,18 +336,11 @@ pub fn update(dir: &Path) -> Result<Vec<String>> {
     let sheets = tempfile::tempdir()?;
     let mut changed = Vec::new();
     for (k, e) in card.evaluations.iter_mut().enumerate() {
-        let out = sheets.path().join(k.to_string());
-        let s = run_eval(dir, &env, &e.map, e.episodes, e.max_steps, e.seed, Some(&out))?;
-        eprintln!("  {}: {} {}{}", card.name, e.map, s.one_line(), if e.check { " (check)" } else { "" });
-        if e.map == "env3" && !e.check {
-            std::fs::copy(out.join("sheet.png"), dir.join("sheet-env3.png"))?;
-        }
-        let now = CardEval::from_summary(&e.map, e.episodes, e.max_steps, e.check, &s);
+        let now = evaluate_row(dir, &card.name, &env, &e.map, e.episodes, e.max_steps, e.seed, e.check, sheets.path(), k)?;
         changed.extend(e.differences(&now).into_iter().map(|d| format!("{} on {}: {d}", card.name, e.map)));
-        *e = CardEval { seed: e.seed, ..now };
+        *e = now;
     }
-    mapless_proto::atomic_file::write_file_atomically(&dir.join(CARD_JSON), serde_json::to_string_pretty(&card)?.as_bytes())?;
-    mapless_proto::atomic_file::write_file_atomically(&dir.join("card.md"), card_markdown(&card).as_bytes())?;
+    write_card(dir, &card)?;
     Ok(changed)
 }
 
