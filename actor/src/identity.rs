@@ -19,6 +19,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context as _, bail};
+use mapless_net::insert::sleep_unless_stopped;
 use mapless_net::register::{is_retryable, register_actor};
 
 use crate::run::{ActorConfig, ReplayTarget};
@@ -87,10 +88,7 @@ fn register(cfg: &ActorConfig, name: &str, stop: &AtomicBool) -> anyhow::Result<
             }
             Err(e) if is_retryable(&e) => {
                 tracing::warn!(name, error = %e, retry_in = ?wait, "cannot register with the replay yet");
-                let until = std::time::Instant::now() + wait;
-                while std::time::Instant::now() < until && !stop.load(Ordering::Relaxed) {
-                    std::thread::sleep(Duration::from_millis(50));
-                }
+                sleep_unless_stopped(wait, stop);
                 wait = (wait * 2).min(RETRY_MAX);
             }
             Err(e) => return Err(anyhow::Error::new(e).context(format!("registering actor name {name:?} with the replay"))),

@@ -52,7 +52,8 @@ pub struct Stopped(pub String);
 const BACKOFF_START: Duration = Duration::from_millis(100);
 const BACKOFF_MAX: Duration = Duration::from_secs(5);
 
-fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
+/// Sleeps `d`, waking every 10 ms to return early once `stop` is set (blocking reconnect loops).
+pub fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
     let end = Instant::now() + d;
     while Instant::now() < end && !stop.load(Ordering::Relaxed) {
         std::thread::sleep(Duration::from_millis(10).min(end - Instant::now()));
