@@ -35,6 +35,10 @@ fn builtin_source(name: &str) -> Option<&'static str> {
     })
 }
 
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 fn default_height_m() -> f64 {
     1.0
 }
@@ -67,7 +71,7 @@ pub enum Obstacle {
         #[serde(default = "default_height_m")]
         height_m: f64,
     },
-    /// Thin wall from `from` to `to`.
+    /// Wall from `from` to `to`: a line, or a solid bar `VectorMapFile::wall_thickness_m` thick.
     Wall {
         from: [f64; 2],
         to: [f64; 2],
@@ -102,6 +106,15 @@ pub struct VectorMapFile {
     /// Closed walls along the bounds.
     #[serde(default)]
     pub boundary_walls: bool,
+    /// How thick every `wall` of the map is, in metres, centred on its line and spanning exactly
+    /// `from`–`to` (so a doorway between two walls keeps its width). 0 (the default) draws each
+    /// wall as a line. A thin line seen end-on is invisible to a sparse scan: a ray parallel to it
+    /// never hits it, so a wall pointing at the car shows nothing until the car touches it, which
+    /// no real wall does. The paper's worlds set 1.0: its set-up follows MathWorks' obstacle
+    /// avoidance example, whose map is an occupancy grid of 1 m cells (`mapScale = 1`), where
+    /// every wall is at least one cell thick [inferred].
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub wall_thickness_m: f64,
     /// Each entry a one-key map: `- box: {...}` (serde_yaml's singleton-map enum form).
     #[serde(default, with = "serde_yaml::with::singleton_map_recursive")]
     pub obstacles: Vec<Obstacle>,
@@ -197,9 +210,16 @@ impl Map {
             return Err(map_err(path, format!("bounds must be finite with min < max, got min {:?} max {:?}", f.bounds.min, f.bounds.max)));
         }
         let bounds = Aabb { min_x: x0, min_y: y0, max_x: x1, max_y: y1 };
+        let t = f.wall_thickness_m;
+        if !(t.is_finite() && t >= 0.0) {
+            return Err(map_err(path, format!("wall_thickness_m must be finite and >= 0, got {t}")));
+        }
         let mut map =
             Map { name: f.name, description: f.description, bounds, obstacles: f.obstacles, boundary_walls: f.boundary_walls, shaded: f.shaded, grid: None, segments: Vec::new(), circles: Vec::new() };
         map.validate_vector(path)?;
+        if t > 0.0 {
+            map.thicken_walls(t, path)?;
+        }
         map.build_geometry();
         Ok(map)
     }
@@ -247,6 +267,29 @@ impl Map {
             };
             if !ok {
                 return Err(map_err(path, format!("shaded region {k}: needs finite coordinates and a positive size")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Replaces every wall by a solid bar `t` thick centred on its line, spanning exactly its
+    /// endpoints; a bar that would cross the map's bounds (a wall laid along them) is an error.
+    fn thicken_walls(&mut self, t: f64, path: &Path) -> Result<()> {
+        let b = self.bounds;
+        let tol = 1e-9;
+        for (k, o) in self.obstacles.iter_mut().enumerate() {
+            if let Obstacle::Wall { from, to, height_m } = *o {
+                let (dx, dy) = (to[0] - from[0], to[1] - from[1]);
+                let bar = Obstacle::Box {
+                    center: [(from[0] + to[0]) / 2.0, (from[1] + to[1]) / 2.0],
+                    size: [dx.hypot(dy), t],
+                    angle_deg: dy.atan2(dx).to_degrees(),
+                    height_m,
+                };
+                if !bar.outline().iter().all(|p| p[0] >= b.min_x - tol && p[0] <= b.max_x + tol && p[1] >= b.min_y - tol && p[1] <= b.max_y + tol) {
+                    return Err(map_err(path, format!("obstacle {k} (wall): {t} m thick (wall_thickness_m), it reaches outside the map bounds")));
+                }
+                *o = bar;
             }
         }
         Ok(())
@@ -427,6 +470,8 @@ impl Map {
             description: self.description.clone(),
             bounds: Bounds { min: [b.min_x, b.min_y], max: [b.max_x, b.max_y] },
             boundary_walls: self.boundary_walls,
+            // Thick walls were turned into boxes on loading: what is written is already solid.
+            wall_thickness_m: 0.0,
             obstacles: self.obstacles.clone(),
             shaded: self.shaded.clone(),
         };

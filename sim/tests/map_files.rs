@@ -175,3 +175,43 @@ fn corrupt_ros_maps_get_errors_naming_file_and_problem() {
         assert_names(&err, file, problem);
     }
 }
+
+/// A 10 m × 4 m room with one wall from (5, 0) to (5, 1.25) and another from (5, 2.75) to
+/// (5, 4): a 1.5 m doorway, each jamb's end pointing along y.
+fn doorway(thickness: &str) -> String {
+    format!(
+        "format: mapless-vector-map/v1\nname: door\nbounds: {{ min: [0, 0], max: [10, 4] }}\nboundary_walls: true\n{thickness}obstacles:\n  - wall: {{ from: [5, 0], to: [5, 1.25] }}\n  - wall: {{ from: [5, 2.75], to: [5, 4] }}\n"
+    )
+}
+
+#[test]
+fn a_thick_wall_is_a_solid_bar_that_a_ray_meets_end_on_and_keeps_the_doorway() {
+    let line = Map::from_vector_yaml(&doorway(""), "line.yaml".as_ref()).unwrap();
+    let bar = Map::from_vector_yaml(&doorway("wall_thickness_m: 1.0\n"), "bar.yaml".as_ref()).unwrap();
+    let (sl, sb) = (line.scene(0.0, 2.0), bar.scene(0.0, 2.0));
+    // A ray along the lower jamb's line, from inside the doorway towards its end: the line is
+    // parallel to the ray and never hit (the ray runs on to the far wall); the bar's end face
+    // at y = 1.25 is 1.25 m away.
+    let (far, near) = (sl.cast_ray(5.0, 2.5, 0.0, -1.0, 12.0), sb.cast_ray(5.0, 2.5, 0.0, -1.0, 12.0));
+    assert!((far - 2.5).abs() < 1e-4, "the line is seen end-on only where the ray ends, at the outer wall: {far}");
+    assert!((near - 1.25).abs() < 1e-4, "the bar's end face: {near}");
+    // The bar is 1 m thick, centred on the line, and solid; the doorway between the ends keeps
+    // its 1.5 m.
+    assert!(!bar.is_free(4.6, 0.6) && !bar.is_free(5.4, 3.4) && bar.is_free(4.4, 0.6) && bar.is_free(5.0, 2.0));
+    assert!(line.is_free(4.6, 0.6));
+    assert!((sb.cast_ray(4.0, 0.6, 1.0, 0.0, 12.0) - 0.5).abs() < 1e-4, "the bar's side face at x = 4.5");
+    assert!((sb.cast_ray(5.0, 2.0, 0.0, 1.0, 12.0) - 0.75).abs() < 1e-4, "the upper jamb's end at y = 2.75");
+    // Loaded, a thick wall is written back as the box it became, and reloads identically.
+    let again = Map::from_vector_yaml(&bar.to_vector_yaml().unwrap(), "again.yaml".as_ref()).unwrap();
+    assert_eq!(again.segments().collect::<Vec<_>>(), bar.segments().collect::<Vec<_>>());
+}
+
+#[test]
+fn a_wall_thickness_that_cannot_be_built_is_a_clear_error() {
+    let err = Map::from_vector_yaml(&doorway("wall_thickness_m: -0.5\n"), "neg.yaml".as_ref()).unwrap_err().to_string();
+    assert!(err.contains("neg.yaml") && err.contains("wall_thickness_m must be finite and >= 0"), "{err}");
+    // A wall laid along the bounds would stick out of the map once thick.
+    let along = "format: mapless-vector-map/v1\nname: along\nbounds: { min: [0, 0], max: [10, 4] }\nwall_thickness_m: 0.5\nobstacles:\n  - wall: { from: [0, 0], to: [10, 0] }\n";
+    let err = Map::from_vector_yaml(along, "along.yaml".as_ref()).unwrap_err().to_string();
+    assert!(err.contains("along.yaml") && err.contains("obstacle 0 (wall)") && err.contains("outside the map bounds"), "{err}");
+}
