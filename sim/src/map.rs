@@ -280,12 +280,7 @@ impl Map {
         for (k, o) in self.obstacles.iter_mut().enumerate() {
             if let Obstacle::Wall { from, to, height_m } = *o {
                 let (dx, dy) = (to[0] - from[0], to[1] - from[1]);
-                let bar = Obstacle::Box {
-                    center: [(from[0] + to[0]) / 2.0, (from[1] + to[1]) / 2.0],
-                    size: [dx.hypot(dy), t],
-                    angle_deg: dy.atan2(dx).to_degrees(),
-                    height_m,
-                };
+                let bar = Obstacle::Box { center: [(from[0] + to[0]) / 2.0, (from[1] + to[1]) / 2.0], size: [dx.hypot(dy), t], angle_deg: dy.atan2(dx).to_degrees(), height_m };
                 if !bar.outline().iter().all(|p| p[0] >= b.min_x - tol && p[0] <= b.max_x + tol && p[1] >= b.min_y - tol && p[1] <= b.max_y + tol) {
                     return Err(map_err(path, format!("obstacle {k} (wall): {t} m thick (wall_thickness_m), it reaches outside the map bounds")));
                 }

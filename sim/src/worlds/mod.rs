@@ -202,7 +202,16 @@ pub fn parse_spec(spec: &str) -> Option<Result<(Family, u64)>> {
 /// A vector world of side `size` centred on the origin, fenced.
 fn vector_map(name: &str, size: f64, obstacles: Vec<Obstacle>, shaded: Vec<Region>) -> Result<Map> {
     let h = size / 2.0;
-    let file = VectorMapFile { format: VECTOR_FORMAT.into(), name: name.into(), description: String::new(), bounds: Bounds { min: [-h, -h], max: [h, h] }, boundary_walls: true, wall_thickness_m: 0.0, obstacles, shaded };
+    let file = VectorMapFile {
+        format: VECTOR_FORMAT.into(),
+        name: name.into(),
+        description: String::new(),
+        bounds: Bounds { min: [-h, -h], max: [h, h] },
+        boundary_walls: true,
+        wall_thickness_m: 0.0,
+        obstacles,
+        shaded,
+    };
     let text = serde_yaml::to_string(&file).map_err(|e| SimError::InvalidConfig(format!("world {name}: {e}")))?;
     Map::from_vector_yaml(&text, std::path::Path::new(&format!("<generated {name}>")))
 }
