@@ -649,7 +649,7 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     );
     let _ = writeln!(
         page,
-        "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block and env2 a walled 40 m square of four lanes round medians, so a car that stands still earns less per step of eq. (1) than the paper's agents (Tables III and IV). env3 is held to Table V's remark that it resembles env1 more than env2: an island in each room makes it a loop of aisles, so 99 % of its poses show a nearest obstacle no farther than env1's farthest (`mapless maps stats env3`). Its thin walls end at 3 m doorways, and most collisions of our agents there are at those ends."
+        "- **Worlds.** The paper's figures are not in its text; our env1, env2 and env3 are layouts built to satisfy its numbers (docs/simulator.md, \"What the paper's numbers imply\"): env1 is a walled 25 m box with a central block and env2 a walled 40 m square of four lanes round medians, so a car that stands still earns less per step of eq. (1) than the paper's agents (Tables III and IV). env3 is held to Table V's remark that it resembles env1 more than env2: an island in each room makes it a loop of aisles, so 99 % of its poses show a nearest obstacle no farther than env1's farthest (`mapless maps stats env3`). Walls in env1 and env3 are 1 m thick, as on the occupancy grid of 1 m cells that the paper's MathWorks template uses: drawn as lines (before 2026-11-26), a wall's end was invisible end-on to seven beams and our agents clipped env3's door jambs."
     );
     let _ = writeln!(
         page,
