@@ -21,18 +21,20 @@ const PATIENCE: Duration = Duration::from_secs(60);
 const STEPS: u64 = 96;
 
 /// `mapless-replay`, beside this package's `mapless-actor` (the actor crate does not depend on
-/// the replay; `cargo test` of both builds it, otherwise it is built here once).
+/// the replay). Brought up to date once per test binary, not only built when missing: a stale
+/// replay left by an older checkout would answer the newer RPCs with UNIMPLEMENTED.
 fn replay_bin() -> PathBuf {
+    static BUILT: std::sync::OnceLock<()> = std::sync::OnceLock::new();
     let actor = PathBuf::from(env!("CARGO_BIN_EXE_mapless-actor"));
     let replay = actor.with_file_name("mapless-replay");
-    if !replay.exists() {
+    BUILT.get_or_init(|| {
         let mut cmd = Command::new(env!("CARGO"));
         cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "-p", "mapless-replay", "--bin", "mapless-replay"]);
         if actor.parent().and_then(Path::file_name).is_some_and(|n| n == "release") {
             cmd.arg("--release");
         }
         assert!(cmd.status().expect("cargo runs").success(), "building mapless-replay failed");
-    }
+    });
     replay
 }
 
