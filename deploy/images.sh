@@ -11,6 +11,12 @@
 # learner image runs on CPU: libraries that CUDA loads at run time (cuDNN's engines, NVRTC's
 # builtins) are not in the ldd closure, so `device: cuda` needs an image built from a CUDA base.
 #
+# Each image has a HEALTHCHECK that runs its own binary's `health` subcommand (no shell, no curl:
+# the images have neither): `mapless-replay health` and `mapless-learner health` ask the gRPC
+# health service (grpc.health.v1.Health) on the default loopback port, `mapless-actor health` asks
+# GET /healthz on the actor's metrics address. `MAPLESS_HEALTH_ADDR`, `MAPLESS_HEALTH_TLS_CA_FILE`
+# and `MAPLESS_HEALTH_TOKEN_FILE` point the probe elsewhere (deploy/compose.yaml sets them).
+#
 # Usage: deploy/images.sh [TAG]   (default TAG: local; also $MAPLESS_PROFILE=release|dev, and
 # $LIBTORCH to link a libtorch already installed instead of scripts/setup-torch.sh's)
 set -euo pipefail
@@ -51,6 +57,7 @@ FROM scratch
 COPY root/ /
 ENV LD_LIBRARY_PATH=/opt/mapless/lib
 LABEL org.opencontainers.image.title="mapless-$name" org.opencontainers.image.source="mapless"
+HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 CMD ["/usr/local/bin/$bin", "health"]
 ENTRYPOINT ["/usr/local/bin/$bin"]
 DOCKERFILE
     echo "images.sh: mapless-$name:$tag ($(du -sh "$dir/root" | cut -f1))" >&2

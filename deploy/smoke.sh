@@ -4,6 +4,8 @@
 # replicas (`--scale actor=N`, default 4) on a private network (gRPC with TLS and a token between
 # containers) and checks, printing each step and what it measured:
 #
+#   0. `up` starts the learner only once the replay is healthy and the actors once both are
+#      (depends_on: service_healthy), and every container's HEALTHCHECK reports healthy;
 #   1. the learner samples and updates, and publishes new weights versions;
 #   2. N distinct actor ids, on slots 0..N-1, write rows into the replay (its /metrics), and
 #      every replica acts with a published policy (version ≥ 2) with its batches acknowledged;
@@ -97,6 +99,12 @@ show_actors() {
     actor_rows | sed 's/^/smoke:   /'
 }
 
+# Every container of the project: its HEALTHCHECK's verdict (the image's `health` subcommand).
+all_healthy() {
+    local c
+    for c in $(dc ps -q); do [ "$(docker inspect -f '{{.State.Health.Status}}' "$c")" = healthy ] || return 1; done
+}
+wait_for 120 "every container reports healthy" all_healthy
 wait_for 300 "learner updates > 100" learner_updates
 echo "smoke: $(( SECONDS - started ))s from up to > 100 learner updates"
 wait_for 120 "learner published weights version ≥ 3" learner_versions

@@ -1,7 +1,8 @@
 //! The weights service over real HTTP/2 on loopback (port 0): the documented Subscribe
 //! semantics (newest version at once, then strictly newer ones, min_version, slow subscribers
-//! skip, UNAVAILABLE on shutdown), the publisher's checks, and the `.safetensors` round trip
-//! from tch tensors to a file and back.
+//! skip, UNAVAILABLE on shutdown), its gRPC health (SERVING from the first publication until
+//! the learner drains), the publisher's checks, and the `.safetensors` round trip from tch
+//! tensors to a file and back.
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -13,6 +14,7 @@ use mapless_learner::source::GrpcEndpoint;
 use mapless_learner::weights::{self, ServeOptions, WeightsPublisher, snapshot_from_tensors, tensors_from_snapshot};
 use mapless_net::NetError;
 use mapless_net::Security;
+use mapless_net::health::Health;
 use mapless_net::weights::{WeightsSubscription, subscribe};
 use mapless_proto::v1::weights_service_client::WeightsServiceClient;
 use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot};
@@ -80,6 +82,29 @@ impl Harness {
         self.stop.take().expect("running").send(()).expect("server still running");
         within("server stop", self.server.take().expect("running")).await.expect("no panic").expect("clean exit");
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_is_serving_from_the_first_publication_until_the_learner_drains() {
+    use tonic_health::pb::HealthCheckRequest;
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::health_client::HealthClient;
+    let (serving, not_serving) = (ServingStatus::Serving as i32, ServingStatus::NotServing as i32);
+    let publisher = WeightsPublisher::new();
+    let health = Health::new();
+    let h = Harness::start(&publisher, ServeOptions { health: health.clone(), ..ServeOptions::default() }).await;
+    assert_eq!(within("check", mapless_net::health::check(&h.endpoint(), "")).await.expect("check"), not_serving, "nothing published yet");
+    let channel = h.endpoint().connect("health").await.expect("connect");
+    let request = HealthCheckRequest { service: "mapless.v1.WeightsService".into() };
+    let mut watch = HealthClient::new(channel).watch(request).await.expect("watch").into_inner();
+    let mut status = async || within("health status", watch.message()).await.expect("status").expect("open").status;
+    assert_eq!(status().await, not_serving);
+    publisher.publish(snapshot(1)).expect("v1");
+    assert_eq!(status().await, serving, "an actor that subscribes now gets weights at once");
+    health.drain();
+    assert_eq!(status().await, not_serving, "the learner's stop signal: draining");
+    assert_eq!(within("check", mapless_net::health::check(&h.endpoint(), "")).await.expect("check"), not_serving);
+    h.shutdown().await;
 }
 
 async fn next(subscription: &mut WeightsSubscription) -> WeightsSnapshot {

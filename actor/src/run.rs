@@ -17,6 +17,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use mapless_net::health::Health;
 use mapless_net::shm::ShmConfig;
 use mapless_net::{ClientSecurity, metrics};
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, WeightsSnapshot};
@@ -99,7 +100,8 @@ pub struct ActorConfig {
     /// Base seed; process `index` uses its own streams derived from it.
     #[serde(default)]
     pub seed: u64,
-    /// Prometheus `/metrics` address (loopback; port 0 picks one, logged at start); none: off.
+    /// Prometheus `/metrics` address, with `/healthz` beside it (`mapless-actor health ADDR`
+    /// asks it); loopback; port 0 picks one, logged at start; none: off.
     #[serde(default)]
     pub metrics_listen: Option<std::net::SocketAddr>,
 }
@@ -224,10 +226,14 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
 
     let mut report = ActorReport { actor_id: actor_id.to_owned(), ..ActorReport::default() };
     let gauges = Arc::new(Gauges::default());
+    // `GET /healthz` beside /metrics (an actor serves no gRPC): SERVING while the loop below
+    // acts with its sink connected, NOT_SERVING once it stops and drains.
+    let health = Health::new();
     if let Some(addr) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        metrics::spawn(&rt, addr, Arc::new(move || g.render()), stop_rx.clone())?;
+        metrics::spawn(&rt, addr, Arc::new(move || g.render()), health.clone(), stop_rx.clone())?;
     }
+    health.serve();
     let mut policy: Option<Policy> = None;
     let mut noise = NoiseProcess::new(cfg.exploration.noise, n, 2);
     let mut obs = vec![0.0f32; n * d];
@@ -354,6 +360,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     }
 
     // Shutdown: what is built goes out, and we wait for its acknowledgement.
+    health.drain();
     if !builder.is_empty() {
         sequence += 1;
         // `stop` is set: one attempt, then `flush` below keeps trying until its deadline.

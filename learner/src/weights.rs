@@ -30,7 +30,8 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use mapless_net::serve::{Security, serve_secured};
+use mapless_net::health::Health;
+use mapless_net::serve::{Readiness, Security, serve_secured};
 use mapless_proto::v1::weights_service_server::{WeightsService, WeightsServiceServer};
 use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, SubscribeRequest, WeightsSnapshot};
 use mapless_proto::{MAX_MESSAGE_BYTES, check_protocol_version};
@@ -39,6 +40,7 @@ use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
+use tonic::server::NamedService;
 use tonic::service::Routes;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
@@ -281,11 +283,16 @@ pub struct ServeOptions {
     /// After the shutdown signal, how long open connections may take to close before they
     /// are cut.
     pub shutdown_grace: Duration,
+    /// What the gRPC health service reports: SERVING once the publisher holds a snapshot (an
+    /// actor that subscribes gets weights at once), NOT_SERVING before, and from the shutdown
+    /// signal or the holder's [`Health::drain`] on (the learner drains at its stop signal,
+    /// while it finishes its last update and checkpoint).
+    pub health: Health,
 }
 
 impl Default for ServeOptions {
     fn default() -> Self {
-        Self { security: Security::default(), shutdown_grace: Duration::from_secs(5) }
+        Self { security: Security::default(), shutdown_grace: Duration::from_secs(5), health: Health::new() }
     }
 }
 
@@ -305,13 +312,25 @@ fn serve_error(addr: String, reason: String) -> LearnerError {
     LearnerError::Grpc { service: "weights", endpoint: addr, code: tonic::Code::Unavailable, message: reason }
 }
 
+/// The gRPC names the health service answers for, besides `""`.
+const GRPC_NAMES: &[&str] = &[<WeightsServiceServer<WeightsGrpc> as NamedService>::NAME];
+
 /// Serves `publisher` on `listener` until `shutdown` resolves, with `options.security`'s TLS and
 /// token (`mapless_net::serve::serve_secured`: a non-loopback listener without both is
-/// refused). Open Subscribe streams end with UNAVAILABLE at shutdown.
+/// refused). Open Subscribe streams end with UNAVAILABLE at shutdown. Health: see
+/// [`ServeOptions::health`].
 pub async fn serve(listener: TcpListener, publisher: WeightsPublisher, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), LearnerError> {
     let addr = listener.local_addr().map_or_else(|_| "?".to_owned(), |a| a.to_string());
+    let mut published = publisher.receiver();
+    let ready = async move {
+        // An Err (every sender gone) means nothing will ever be published: stay not serving.
+        if published.wait_for(Option::is_some).await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    let readiness = Readiness { grpc_names: GRPC_NAMES, health: options.health.clone(), ready };
     let make = |auth, stop| Routes::new(InterceptedService::new(WeightsGrpc::new(&publisher).with_shutdown(stop).into_server(), auth));
-    serve_secured("the weights service", listener, &options.security, options.shutdown_grace, make, shutdown).await.map_err(|e| serve_error(addr, e.to_string()))
+    serve_secured("the weights service", listener, &options.security, options.shutdown_grace, readiness, make, shutdown).await.map_err(|e| serve_error(addr, e.to_string()))
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -24,9 +24,12 @@
 //! - [`logging`]: every process's log set-up with its identity on every line;
 //! - [`metrics`]: the Prometheus `/metrics` exporter of every process, and the one line per
 //!   figure that every `mapless bench` prints;
+//! - [`health`]: whether a process can do its job — the gRPC health protocol beside every
+//!   service, `/healthz` beside every `/metrics`, and the probes a container runs;
 //! - [`signals`]: the SIGINT/SIGTERM every service stops on.
 
 pub mod endpoint;
+pub mod health;
 pub mod insert;
 pub mod logging;
 pub mod metrics;

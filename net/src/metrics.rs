@@ -1,7 +1,8 @@
 //! The Prometheus `/metrics` exporter of every mapless process (replay, learner, actors):
 //! OpenMetrics text written by `prometheus-client` from an [`Exposition`] built afresh on each
 //! scrape (the values are read where they live — the replay's table, a process's counters — so
-//! nothing is cached), served over plain HTTP/1 by axum.
+//! nothing is cached), served over plain HTTP/1 by axum; beside it `GET /healthz`, the
+//! process's [`Health`]: 200 `SERVING`, else 503 `NOT_SERVING`.
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -9,6 +10,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
 
 use axum::extract::State;
+use axum::http::StatusCode;
 use axum::http::header::CONTENT_TYPE;
 use axum::response::IntoResponse;
 use axum::routing::get;
@@ -20,17 +22,24 @@ use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
+use crate::health::Health;
+
 /// Content type of the OpenMetrics text format (what Prometheus asks for first).
 pub const CONTENT_TYPE_TEXT: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
 
 /// Renders the exposition text on each scrape.
 pub type Render = Arc<dyn Fn() -> String + Send + Sync>;
 
-/// Serves `render()` at `GET /metrics` on `listener` until `shutdown` resolves. `render` runs
-/// on the blocking pool, so it may take a std lock (the replay's table).
-pub async fn serve(listener: TcpListener, render: Render, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-    let app = axum::Router::new().route("/metrics", get(scrape)).with_state(render);
+/// Serves `render()` at `GET /metrics` and `health` at `GET /healthz` on `listener` until
+/// `shutdown` resolves. `render` runs on the blocking pool, so it may take a std lock (the
+/// replay's table).
+pub async fn serve(listener: TcpListener, render: Render, health: Health, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
+    let app = axum::Router::new().route("/metrics", get(scrape)).with_state(render).route("/healthz", get(healthz)).with_state(health);
     axum::serve(listener, app).with_graceful_shutdown(shutdown).await
+}
+
+async fn healthz(State(health): State<Health>) -> impl IntoResponse {
+    if health.is_serving() { (StatusCode::OK, "SERVING\n") } else { (StatusCode::SERVICE_UNAVAILABLE, "NOT_SERVING\n") }
 }
 
 async fn scrape(State(render): State<Render>) -> impl IntoResponse {
@@ -39,9 +48,9 @@ async fn scrape(State(render): State<Render>) -> impl IntoResponse {
 }
 
 /// Binds `addr` (port 0: any free port; loopback only), logs the address, and serves `render`
-/// on `rt` until `stop` turns true. Returns the bound address. For the actor and learner
-/// processes, whose metrics are for the host they run on.
-pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, mut stop: watch::Receiver<bool>) -> std::io::Result<SocketAddr> {
+/// and `health` on `rt` until `stop` turns true. Returns the bound address. For the actor and
+/// learner processes, whose metrics are for the host they run on.
+pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, health: Health, mut stop: watch::Receiver<bool>) -> std::io::Result<SocketAddr> {
     if !addr.ip().is_loopback() {
         return Err(std::io::Error::new(std::io::ErrorKind::PermissionDenied, format!("metrics: refusing non-loopback address {addr}")));
     }
@@ -52,7 +61,7 @@ pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, mut
         let stopped = async move {
             let _ = stop.wait_for(|s| *s).await;
         };
-        if let Err(e) = serve(listener, render, stopped).await {
+        if let Err(e) = serve(listener, render, health, stopped).await {
             tracing::warn!(error = %e, "metrics endpoint stopped");
         }
     });
@@ -167,8 +176,9 @@ mod tests {
             x.counter("x", "Things.", 3.0).gauges("y", "Levels.", [(labels([("actor", "a\"b\\c\nd")]), 0.5)]);
             x.text()
         });
-        assert!(spawn(&rt, "0.0.0.0:0".parse().unwrap(), render.clone(), stop_rx.clone()).is_err(), "non-loopback is refused");
-        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), render, stop_rx).unwrap();
+        let health = Health::new();
+        assert!(spawn(&rt, "0.0.0.0:0".parse().unwrap(), render.clone(), health.clone(), stop_rx.clone()).is_err(), "non-loopback is refused");
+        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), render, health.clone(), stop_rx).unwrap();
         let get = |path: &'static str| {
             rt.block_on(async move {
                 let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
@@ -185,6 +195,21 @@ mod tests {
         assert!(ok.contains(r#"y{actor="a\"b\\c\nd"} 0.5"#), "label values are escaped: {ok}");
         assert!(ok.trim_end().ends_with("# EOF"), "{ok}");
         assert!(get("/nope").starts_with("HTTP/1.1 404"));
+        let _ = stop_tx.send(true);
+    }
+
+    #[test]
+    fn healthz_answers_the_phase_and_the_probe_reads_it() {
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let health = Health::new();
+        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), Arc::new(String::new), health.clone(), stop_rx).unwrap();
+        let status = || rt.block_on(crate::health::get_healthz(addr)).unwrap();
+        assert_eq!(status(), 503, "starting");
+        health.serve();
+        assert_eq!(status(), 200, "serving");
+        health.drain();
+        assert_eq!(status(), 503, "draining");
         let _ = stop_tx.send(true);
     }
 }

@@ -3,8 +3,10 @@
 //!
 //! ```text
 //!  TcpListener ─► [TLS, when configured] ─► bearer-token check ─► the service's routes
-//!                                             (UNAUTHENTICATED)
-//!  shutdown future ─► stop = true (streams end UNAVAILABLE) ─► HTTP/2 GOAWAY ─► at most `grace` later, return
+//!                                             (UNAUTHENTICATED)     + grpc.health.v1.Health
+//!  ready future ─► health SERVING
+//!  shutdown future ─► health NOT_SERVING, stop = true (streams end UNAVAILABLE) ─► HTTP/2 GOAWAY
+//!                  ─► at most `grace` later, return
 //! ```
 //!
 //! Security rule: a loopback address is reachable only from this host, so plain HTTP/2 is
@@ -21,11 +23,14 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
+use tonic::service::interceptor::InterceptedService;
 use tonic::service::{Interceptor, Routes};
 use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic::{Request, Status};
 use tracing::{info, warn};
+
+pub use crate::health::Health;
 
 /// HTTP/2 pings that find dead peers (a crashed host sends no RST), so their streams are
 /// released within interval + timeout [inferred: 10 s + 20 s].
@@ -147,17 +152,32 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.ct_eq(b).into()
 }
 
+/// What a service tells the gRPC health protocol, besides its routes: its gRPC names (the
+/// health service answers for them and for `""`), the process's [`Health`], and when it is
+/// ready (for the replay at once; for the learner at its first publication).
+pub struct Readiness<R> {
+    pub grpc_names: &'static [&'static str],
+    pub health: Health,
+    pub ready: R,
+}
+
 /// Serves the routes `make` builds on `listener` until `shutdown` resolves, with `security`'s
 /// TLS and keep-alive pings; refuses a non-loopback listener without TLS and a token.
 ///
 /// `make` gets the token check to wrap each service in (`InterceptedService::new(svc, auth)`)
 /// and a stop flag that turns true when `shutdown` resolves, so that open streams can end
 /// with UNAVAILABLE; connections still open `grace` after that are closed.
+///
+/// Beside the routes it serves `grpc.health.v1.Health` behind the same token check: NOT_SERVING
+/// until `readiness.ready` resolves, SERVING then, NOT_SERVING again from `shutdown` on (or
+/// from any earlier [`Health::drain`] of the caller's). An open health `Watch` stream holds its
+/// connection until `grace` ends it.
 pub async fn serve_secured(
     service: &'static str,
     listener: TcpListener,
     security: &Security,
     grace: Duration,
+    readiness: Readiness<impl Future<Output = ()> + Send>,
     make: impl FnOnce(BearerAuth, watch::Receiver<bool>) -> Routes,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
@@ -167,22 +187,39 @@ pub async fn serve_secured(
     }
     let transport = |error| ServeError::Transport { service, addr: addr.to_string(), error };
     let (stop_tx, stop_rx) = watch::channel(false);
-    let routes = make(security.auth(), stop_rx.clone());
+    let Readiness { grpc_names, health, ready } = readiness;
+    let (health_service, follow_health) = health.grpc(grpc_names).await;
+    let routes = make(security.auth(), stop_rx.clone()).add_service(InterceptedService::new(health_service, security.auth()));
     let mut builder = Server::builder().http2_keepalive_interval(Some(KEEPALIVE_INTERVAL)).http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
     if let Some(tls) = &security.tls {
         builder = builder.tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key))).map_err(transport)?;
     }
     info!(service, %addr, tls = security.tls.is_some(), token = security.token.is_some(), "gRPC serving");
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let draining = health.clone();
     let signal = async move {
         shutdown.await;
+        draining.drain();
         info!(service, "shutting down: ending open streams");
         let _ = stop_tx.send(true);
     };
     let serving = builder.add_routes(routes).serve_with_incoming_shutdown(incoming, signal);
     tokio::pin!(serving);
     let mut stopped = stop_rx;
+    // Readiness and the health service's statuses are followed while serving, never awaited
+    // for their own sake.
+    let ready_then_follow = async move {
+        tokio::join!(
+            async move {
+                ready.await;
+                health.serve();
+            },
+            follow_health
+        );
+        std::future::pending::<()>().await
+    };
     tokio::select! {
+        () = ready_then_follow => unreachable!("pending"),
         result = &mut serving => result.map_err(transport)?,
         () = async {
             // Only reachable once the signal fired; its sender lives inside `serving`.

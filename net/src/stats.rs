@@ -10,9 +10,11 @@ use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ReportSummary};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tonic::server::NamedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::endpoint::GrpcEndpoint;
+use crate::health::Health;
 
 /// Checks an [`EpisodeStats`] record against the contract (stats.proto).
 pub fn validate(e: &EpisodeStats) -> Result<(), String> {
@@ -128,18 +130,23 @@ impl StatsService for Collector {
 }
 
 /// Serves a [`Collector`] on `listener` (loopback only: the records are not secret, but the
-/// rule is the cluster's) until `stop` turns true.
+/// rule is the cluster's) until `stop` turns true, with the gRPC health service beside it
+/// (SERVING until `stop`).
 pub async fn serve_collector(listener: TcpListener, tx: mpsc::Sender<EpisodeStats>, mut stop: watch::Receiver<bool>) -> Result<(), String> {
     let addr: SocketAddr = listener.local_addr().map_err(|e| e.to_string())?;
     if !addr.ip().is_loopback() {
         return Err(format!("stats collector: refusing non-loopback address {addr}"));
     }
     let svc = StatsServiceServer::new(Collector { tx }).max_decoding_message_size(MAX_MESSAGE_BYTES);
-    tonic::transport::Server::builder()
-        .add_service(svc)
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
-            let _ = stop.wait_for(|s| *s).await;
-        })
-        .await
-        .map_err(|e| e.to_string())
+    let health = Health::new();
+    health.serve();
+    let (health_service, follow_health) = health.grpc(&[<StatsServiceServer<Collector> as NamedService>::NAME]).await;
+    let serving = tonic::transport::Server::builder().add_service(svc).add_service(health_service).serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+        let _ = stop.wait_for(|s| *s).await;
+        health.drain();
+    });
+    tokio::select! {
+        result = serving => result.map_err(|e| e.to_string()),
+        () = async { follow_health.await; std::future::pending().await } => unreachable!("pending"),
+    }
 }

@@ -23,6 +23,7 @@
 use std::future::Future;
 use std::sync::Arc;
 
+use mapless_net::health::Health;
 use mapless_net::metrics::{Exposition, Labels, labels};
 use tokio::net::TcpListener;
 
@@ -31,10 +32,11 @@ use crate::grpc::{newest_policy_version, policy_version_lag};
 use crate::registry::ActorRegistry;
 use crate::table::Table;
 
-/// Serves `GET /metrics` for `table` and the actor slots of `registry` on `listener` until
-/// `shutdown` resolves (`mapless_net::metrics`, the exporter every process uses).
-pub async fn serve(listener: TcpListener, table: Arc<Table>, registry: Arc<ActorRegistry>, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry)), shutdown).await
+/// Serves `GET /metrics` for `table` and the actor slots of `registry`, and `GET /healthz` for
+/// `health`, on `listener` until `shutdown` resolves (`mapless_net::metrics`, the exporter
+/// every process uses).
+pub async fn serve(listener: TcpListener, table: Arc<Table>, registry: Arc<ActorRegistry>, health: Health, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
+    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry)), health, shutdown).await
 }
 
 /// The exposition text for `table` and `registry`.

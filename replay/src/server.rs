@@ -4,8 +4,14 @@
 //! ```text
 //!  TcpListener ─► [TLS, when configured] ─► bearer-token check ─► ReplayServiceServer(ReplayGrpc)
 //!                                             (UNAUTHENTICATED)     16 MiB limits both ways
-//!  shutdown future ─► streams end UNAVAILABLE ─► HTTP/2 GOAWAY ─► at most `shutdown_grace` later, return
+//!                                                                 + grpc.health.v1.Health
+//!  shutdown future ─► health NOT_SERVING, streams end UNAVAILABLE ─► HTTP/2 GOAWAY
+//!                  ─► at most `shutdown_grace` later, return
 //! ```
+//!
+//! Health: [`serve`] gets an open table (its log already recovered), so the replay reports
+//! SERVING (for `""` and `mapless.v1.ReplayService`) as soon as it serves, and NOT_SERVING from
+//! the shutdown signal on.
 //!
 //! Security rule: a loopback address is reachable only from this host, so plain HTTP/2 is
 //! allowed there; any other address (including 0.0.0.0) needs TLS *and* a bearer token, and
@@ -18,12 +24,14 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use mapless_net::health::Health;
+use mapless_net::serve::{Readiness, ServeError, serve_secured};
 use mapless_net::serve::{Security, TlsFiles};
-use mapless_net::serve::{ServeError, serve_secured};
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::replay_service_server::ReplayServiceServer;
 use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
+use tonic::server::NamedService;
 use tonic::service::Routes;
 use tonic::service::interceptor::InterceptedService;
 use tracing::info;
@@ -178,6 +186,7 @@ impl ServerConfig {
             max_sample_streams: self.max_sample_streams,
             shutdown_grace: Duration::from_millis(self.shutdown_grace_ms),
             registry: Arc::new(ActorRegistry::in_memory(self.max_actor_slots)),
+            health: Health::new(),
         })
     }
 
@@ -199,6 +208,9 @@ pub struct ServeOptions {
     pub shutdown_grace: Duration,
     /// Actor name → slot, answered by `RegisterActor` (default: in memory only).
     pub registry: Arc<ActorRegistry>,
+    /// What the gRPC health service (and the process's `/healthz`) reports: serving from the
+    /// start of [`serve`], draining from its shutdown signal.
+    pub health: Health,
 }
 
 impl Default for ServeOptions {
@@ -209,6 +221,7 @@ impl Default for ServeOptions {
             max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS,
             shutdown_grace: Duration::from_secs(5),
             registry: Arc::default(),
+            health: Health::new(),
         }
     }
 }
@@ -219,9 +232,13 @@ pub async fn run(listener: TcpListener, table: Arc<Table>, shutdown: impl Future
     serve(listener, table, ServeOptions::default(), shutdown).await
 }
 
+/// The gRPC names the health service answers for, besides `""`.
+const GRPC_NAMES: &[&str] = &[<ReplayServiceServer<ReplayGrpc> as NamedService>::NAME];
+
 /// Serves `table` on `listener` until `shutdown` resolves. Refuses a non-loopback listener
 /// without TLS and a token. Does not close the table (the caller owns it and may share it
-/// with other ingest paths).
+/// with other ingest paths). Health: SERVING while it serves (the table is open), NOT_SERVING
+/// from `shutdown` on.
 pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), ServerError> {
     let name = table.config().name.clone();
     info!(table = %name, "replay gRPC starting");
@@ -230,7 +247,8 @@ pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptio
         let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
         Routes::new(InterceptedService::new(service, auth))
     };
-    serve_secured("the replay", listener, &options.security, options.shutdown_grace, make, shutdown).await.map_err(|e| match e {
+    let readiness = Readiness { grpc_names: GRPC_NAMES, health: options.health.clone(), ready: std::future::ready(()) };
+    serve_secured("the replay", listener, &options.security, options.shutdown_grace, readiness, make, shutdown).await.map_err(|e| match e {
         ServeError::Insecure { addr, .. } => ServerError::Insecure { addr },
         e => ServerError::Serve(e),
     })

@@ -5,6 +5,7 @@
 //! ```text
 //!   mapless-actor --config run/actor.yaml --index 3 [--max-steps N] [--log-json]
 //!   mapless-actor --config actor.yaml --index auto [--name NAME]   # a slot from the replay
+//!   mapless-actor health 127.0.0.1:9466        # exit 0 when the actor at that /metrics acts
 //! ```
 //! Runs until SIGINT/SIGTERM (then sends what it holds and waits for the acknowledgements),
 //! or until `--max-steps` vehicle-steps; prints its final counters as one JSON line.
@@ -15,16 +16,25 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Context as _;
-use clap::Parser;
+use clap::{Parser, Subcommand};
 use mapless_actor::identity::{IndexArg, resolve_index};
 use mapless_actor::run::{ActorConfig, incarnation_id, run};
+use mapless_net::health::{HttpProbeArgs, http_probe};
 
 #[derive(Parser)]
-#[command(name = "mapless-actor", version, about = "A mapless actor process: vehicles, policy inference, transitions to the replay")]
+#[command(
+    name = "mapless-actor",
+    version,
+    about = "A mapless actor process: vehicles, policy inference, transitions to the replay",
+    args_conflicts_with_subcommands = true,
+    subcommand_negates_reqs = true
+)]
 struct Cli {
+    #[command(subcommand)]
+    cmd: Option<Cmd>,
     /// Actor config (YAML; `mapless train` writes one into the run folder).
-    #[arg(long)]
-    config: PathBuf,
+    #[arg(long, required = true)]
+    config: Option<PathBuf>,
     /// This process's index (seeds and the actor id derive from it), or `auto`: register
     /// `--name` with the replay (gRPC) and take the slot it gives that name — the same slot
     /// every time, also after a restart — so identical replicas need no per-replica config.
@@ -45,8 +55,19 @@ struct Cli {
     log_json: bool,
 }
 
+#[derive(Subcommand)]
+enum Cmd {
+    /// Asks the actor whose `metrics_listen` is ADDR whether it is acting (`GET /healthz`; an
+    /// actor serves no gRPC): exit 0 if so, else 1 with the reason. For a container's
+    /// HEALTHCHECK.
+    Health(HttpProbeArgs),
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Some(Cmd::Health(args)) = &cli.cmd {
+        return http_probe("mapless-actor", args);
+    }
     mapless_net::logging::init(cli.log_json, "info,iceoryx2=warn");
     mapless_net::logging::identify(&[("run", &cli.run), ("role", "actor")]);
     match main_inner(&cli) {
@@ -59,8 +80,9 @@ fn main() -> ExitCode {
 }
 
 fn main_inner(cli: &Cli) -> anyhow::Result<()> {
-    let text = std::fs::read_to_string(&cli.config).with_context(|| format!("reading {}", cli.config.display()))?;
-    let cfg: ActorConfig = serde_yaml::from_str(&text).with_context(|| format!("parsing {}", cli.config.display()))?;
+    let config = cli.config.as_ref().context("--config is required")?;
+    let text = std::fs::read_to_string(config).with_context(|| format!("reading {}", config.display()))?;
+    let cfg: ActorConfig = serde_yaml::from_str(&text).with_context(|| format!("parsing {}", config.display()))?;
     let stop = Arc::new(AtomicBool::new(false));
     let on_signal = Arc::clone(&stop);
     std::thread::Builder::new().name("signals".into()).spawn(move || {

@@ -10,11 +10,15 @@
 //! SIGINT/SIGTERM: stop after the current update, publish, checkpoint, exit 0.
 //!
 //! `mapless-learner --config learner.yaml [--run NAME]` runs it (`mapless train` starts it so);
-//! `mapless-learner bench` measures updates per second (what `mapless bench learner` runs).
+//! `mapless-learner bench` measures updates per second (what `mapless bench learner` runs);
+//! `mapless-learner health [ADDR] [--tls-ca-file F] [--token-file F]` asks a learner's gRPC
+//! health service and exits 0 when it is SERVING (it has published weights), 1 otherwise — the
+//! probe of a container's HEALTHCHECK.
 //! The only executable that links libtorch.
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
+use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -25,8 +29,9 @@ use mapless_learner::algo::{Agent, bench_updates};
 use mapless_learner::config::{AlgorithmKind, LearnerConfig, LearnerEvent, LearnerServiceConfig};
 use mapless_learner::driver::Driver;
 use mapless_learner::source::{GrpcEndpoint, GrpcSource, SampleConfig};
-use mapless_learner::weights::{ServeOptions, WeightsPublisher, serve};
+use mapless_learner::weights::{DEFAULT_WEIGHTS_LISTEN, ServeOptions, WeightsPublisher, serve};
 use mapless_learner::{Device, TorchThreads, checkpoint, device};
+use mapless_net::health::{GrpcProbeArgs, Health, grpc_probe};
 use mapless_net::metrics::{self, bench_report};
 use mapless_net::serve::Security;
 use mapless_proto::atomic_file::{Durability, write_file_atomically_with};
@@ -59,6 +64,9 @@ enum Cmd {
     /// observations, 2 actions, 2×256 hidden, minibatch 128), with 1 and 2 threads
     /// (`mapless bench learner` runs this).
     Bench(BenchArgs),
+    /// Asks a learner whether it is SERVING (grpc.health.v1.Health/Check on its weights
+    /// service): exit 0 if so, else 1 with the reason. For a container's HEALTHCHECK.
+    Health(GrpcProbeArgs),
 }
 
 #[derive(clap::Args)]
@@ -88,19 +96,26 @@ struct BenchArgs {
     json: bool,
 }
 
-fn main() {
+fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Some(Cmd::Health(args)) = &cli.cmd {
+        return grpc_probe("mapless-learner", args, DEFAULT_WEIGHTS_LISTEN);
+    }
     // Benchmarks would drown their figures in info lines.
     mapless_net::logging::init(cli.log_json, if cli.cmd.is_some() { "warn" } else { "info" });
     mapless_net::logging::identify(&[("run", &cli.run), ("role", "learner")]);
     let result = match (&cli.cmd, &cli.config) {
         (Some(Cmd::Bench(a)), _) => bench(a),
+        (Some(Cmd::Health(_)), _) => unreachable!("answered above"),
         (None, Some(config)) => run(config),
         (None, None) => Err(anyhow::anyhow!("give --config FILE (the learner's YAML; `mapless train` writes run/learner.yaml), or a subcommand")),
     };
-    if let Err(e) = result {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
     }
 }
 
@@ -168,11 +183,15 @@ fn run(config_path: &Path) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).thread_name("learner-io").enable_all().build()?;
     let stop = Arc::new(AtomicBool::new(false));
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    // SERVING once the first weights are out, NOT_SERVING from the stop signal on (the last
+    // update, publication and checkpoint are still to come then).
+    let health = Health::new();
     {
-        let stop = Arc::clone(&stop);
+        let (stop, health) = (Arc::clone(&stop), health.clone());
         rt.spawn(async move {
             mapless_net::signals::termination().await;
             tracing::info!("signal received; stopping after this update");
+            health.drain();
             stop.store(true, Ordering::Relaxed);
         });
     }
@@ -212,14 +231,14 @@ fn run(config_path: &Path) -> Result<()> {
     if !security.allows(&addr) {
         bail!("weights_listen {addr} is not loopback: set tls (cert, key) and auth_token_file, or listen on 127.0.0.1");
     }
-    let options = ServeOptions { security, ..ServeOptions::default() };
+    let options = ServeOptions { security, health: health.clone(), ..ServeOptions::default() };
     let server = rt.spawn(serve(listener, publisher, options, async move {
         let _ = shutdown.wait_for(|s| *s).await;
     }));
     let gauges = Arc::new(Gauges::default());
     if let Some(m) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render()), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
+        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render()), health.clone(), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
         println!("metrics on http://{bound}/metrics");
     }
     println!("weights on {addr}");

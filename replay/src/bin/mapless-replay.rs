@@ -10,6 +10,10 @@
 //!
 //! Prints `listening on ADDR` (and `metrics on http://ADDR/metrics`) on stdout once bound, so a
 //! caller that passed `--listen 127.0.0.1:0` can read the port.
+//!
+//! `mapless-replay health [ADDR] [--tls-ca-file F] [--token-file F]` is the probe of a
+//! container's HEALTHCHECK: it asks the standard gRPC health service and exits 0 when the
+//! replay is SERVING, 1 otherwise (its flags may come from `MAPLESS_HEALTH_*` variables).
 
 use std::io::Write as _;
 use std::net::SocketAddr;
@@ -18,9 +22,10 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use clap::{Parser, ValueEnum};
+use clap::{Parser, Subcommand, ValueEnum};
 use mapless_net::TlsFiles;
-use mapless_replay::server::{ServerConfig, serve};
+use mapless_net::health::{GrpcProbeArgs, grpc_probe};
+use mapless_replay::server::{DEFAULT_LISTEN, ServerConfig, serve};
 use mapless_replay::shm::ShmIngest;
 use mapless_replay::{DurableTable, SamplerConfig, metrics};
 use tokio::net::TcpListener;
@@ -36,8 +41,10 @@ enum Sampler {
 /// The mapless experience replay service. Flags override the config file; the file's
 /// missing keys take their defaults.
 #[derive(Debug, Parser)]
-#[command(name = "mapless-replay", version)]
+#[command(name = "mapless-replay", version, args_conflicts_with_subcommands = true)]
 struct Cli {
+    #[command(subcommand)]
+    cmd: Option<Cmd>,
     /// YAML config file (see replay/README.md).
     #[arg(long)]
     config: Option<PathBuf>,
@@ -108,6 +115,13 @@ struct Cli {
     print_config: bool,
 }
 
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Asks a replay whether it is SERVING (grpc.health.v1.Health/Check): exit 0 if so, else 1
+    /// with the reason. For a container's HEALTHCHECK.
+    Health(GrpcProbeArgs),
+}
+
 impl Cli {
     fn config(&self) -> Result<ServerConfig> {
         let mut c = match &self.config {
@@ -172,6 +186,9 @@ fn init_logging(json: bool) {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if let Some(Cmd::Health(args)) = &cli.cmd {
+        return grpc_probe("mapless-replay", args, DEFAULT_LISTEN);
+    }
     let runtime = match tokio::runtime::Builder::new_multi_thread().enable_all().build() {
         Ok(r) => r,
         Err(e) => {
@@ -250,9 +267,9 @@ async fn run(cfg: ServerConfig, mut options: mapless_replay::server::ServeOption
             let maddr = l.local_addr()?;
             info!(addr = %maddr, "metrics serving");
             println!("metrics on http://{maddr}/metrics");
-            let (table, registry) = (Arc::clone(&table), Arc::clone(&registry));
+            let (table, registry, health) = (Arc::clone(&table), Arc::clone(&registry), options.health.clone());
             let rx = stop_rx.clone();
-            Some(tokio::spawn(async move { metrics::serve(l, table, registry, stopped(rx)).await }.in_current_span()))
+            Some(tokio::spawn(async move { metrics::serve(l, table, registry, health, stopped(rx)).await }.in_current_span()))
         }
         None => None,
     };
