@@ -280,6 +280,13 @@ enum BenchCmd {
         /// Rows for the memory measurement (the paper's capacity by default).
         #[arg(long, default_value_t = 1_000_000)]
         memory_rows: usize,
+        /// Only the write-ahead log's cost per fsync policy (never, interval_ms 100, always)
+        /// with 1, 4 and 16 writers: rows/s, insert latency p50/p99, rows per fsync.
+        #[arg(long)]
+        durability: bool,
+        /// Where `--durability` puts its log (the disk it measures; the temp dir by default).
+        #[arg(long, requires = "durability")]
+        dir: Option<std::path::PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -344,7 +351,8 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Reproduce(a) => reproduce::reproduce(&a),
         Cmd::Analyze { cmd: AnalyzeCmd::Eqs { trajectories, seed, out, json } } => analyze_eqs(trajectories, seed, out.as_deref(), json),
         Cmd::Bench { cmd: BenchCmd::Sim { map, seconds, vehicles, json } } => bench_sim(&map, seconds, vehicles, json),
-        Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json } } => bench_replay(seconds, memory_rows, json),
+        Cmd::Bench { cmd: BenchCmd::Replay { seconds, durability: true, dir, json, .. } } => bench_durability(seconds, dir, json),
+        Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json, .. } } => bench_replay(seconds, memory_rows, json),
         Cmd::Bench { cmd: BenchCmd::Learner { args } } => bench_learner(&args),
         Cmd::Bench { cmd: BenchCmd::E2e { actors, seconds, vehicles, set, json } } => bench_e2e(&actors, seconds, vehicles, &set, json),
     }
@@ -724,6 +732,30 @@ fn bench_replay(seconds: f64, memory_rows: usize, json: bool) -> Result<()> {
         bench_report(json, "replay.sample_minibatches_per_s", cfg.clone(), s.minibatches_per_s, "minibatches/s");
         bench_report(json, "replay.sample_latency_p50_us", cfg.clone(), s.p50_us, "us");
         bench_report(json, "replay.sample_latency_p99_us", cfg, s.p99_us, "us");
+    }
+    Ok(())
+}
+
+/// `mapless bench replay --durability`: the write-ahead log's cost under each fsync policy.
+fn bench_durability(seconds: f64, dir: Option<std::path::PathBuf>, json: bool) -> Result<()> {
+    use mapless_replay::FsyncPolicy;
+    use mapless_replay::bench as rb;
+    if !(seconds > 0.0) {
+        bail!("--seconds must be > 0");
+    }
+    let dir = dir.unwrap_or_else(std::env::temp_dir);
+    if !json {
+        println!("replay write-ahead log in {}, in-process, {} rows (17-float obs) per insert, {seconds} s each", dir.display(), rb::BATCH_ROWS);
+    }
+    for (name, policy) in [("never", FsyncPolicy::Never), ("interval_ms_100", FsyncPolicy::IntervalMs(100)), ("always", FsyncPolicy::Always)] {
+        for writers in [1usize, 4, 16] {
+            let f = rb::durable_insert(policy, writers, &dir, Duration::from_secs_f64(seconds))?;
+            let cfg = serde_json::json!({"fsync": name, "writers": writers, "batch_rows": rb::BATCH_ROWS, "obs_dim": 17, "dir": dir});
+            bench_report(json, "replay.durable_insert_rows_per_s", cfg.clone(), f.rows_per_s.round(), "rows/s");
+            bench_report(json, "replay.durable_insert_latency_p50_us", cfg.clone(), f.p50_us.round(), "us");
+            bench_report(json, "replay.durable_insert_latency_p99_us", cfg.clone(), f.p99_us.round(), "us");
+            bench_report(json, "replay.durable_insert_rows_per_fsync", cfg, f.rows_per_fsync.round(), "rows");
+        }
     }
     Ok(())
 }

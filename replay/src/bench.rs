@@ -302,3 +302,77 @@ pub fn snapshot_stall_ms(rows: usize) -> Result<(f64, f64), ReplayError> {
     let _ = std::fs::remove_dir_all(&dir);
     Ok((lock.as_secs_f64() * 1e3, worst.as_secs_f64() * 1e3))
 }
+
+/// Write-ahead log figures under one fsync policy: acknowledged rows per second, the latency
+/// of one insert (call to acknowledgement) at p50 and p99, and rows per fsync round.
+pub struct DurabilityFigures {
+    pub rows_per_s: f64,
+    pub p50_us: f64,
+    pub p99_us: f64,
+    /// Rows acknowledged per fsync the log made (infinite when it made none).
+    pub rows_per_fsync: f64,
+}
+
+/// Inserts into a persistent table whose directory is a fresh folder under `base` (the disk
+/// measured) with `policy`, from `writers` threads, each inserting [`BATCH_ROWS`]-row batches
+/// of 17-float rows one at a time (the next after the previous one's acknowledgement), for
+/// about `duration` after a 300 ms warm-up. In-process, no transport: the cost of the log.
+/// The table holds 100,000 rows, so inserts evict once it is full; no snapshots run.
+pub fn durable_insert(policy: crate::config::FsyncPolicy, writers: usize, base: &std::path::Path, duration: Duration) -> Result<DurabilityFigures, ReplayError> {
+    use crate::config::PersistenceConfig;
+    use crate::persist::DurableTable;
+    let dir = base.join(format!("mapless-bench-durability-{}-{}", std::process::id(), crate::clock::unix_ms()));
+    let cfg = TableConfig { capacity: 100_000, max_batch_rows: BATCH_ROWS, ..bench_table(1, 17)?.config().clone() };
+    let persist = PersistenceConfig { dir: Some(dir.clone()), fsync: policy, snapshot_interval_s: 0.0, ..PersistenceConfig::default() };
+    let (table, _) = DurableTable::open(cfg, persist, 1)?;
+    let table = Arc::new(table);
+    let measuring = Arc::new(AtomicBool::new(false));
+    let stop = Arc::new(AtomicBool::new(false));
+    let threads: Vec<_> = (0..writers)
+        .map(|w| {
+            let (t, measuring, stop) = (Arc::clone(&table), Arc::clone(&measuring), Arc::clone(&stop));
+            std::thread::spawn(move || -> Result<(Vec<f64>, u64), ReplayError> {
+                let mut b = synthetic_batch(&format!("w{w}"), 0, BATCH_ROWS, 17);
+                let (mut lat_us, mut rows) = (Vec::new(), 0u64);
+                while !stop.load(Ordering::Relaxed) {
+                    b.sequence += 1;
+                    let t0 = Instant::now();
+                    t.insert(&b, None)?;
+                    if measuring.load(Ordering::Relaxed) {
+                        lat_us.push(t0.elapsed().as_secs_f64() * 1e6);
+                        rows += BATCH_ROWS as u64;
+                    }
+                }
+                Ok((lat_us, rows))
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let fsyncs = || table.wal_sync().map_or(0, |s| s.fsyncs());
+    let (f0, t0) = (fsyncs(), Instant::now());
+    measuring.store(true, Ordering::Relaxed);
+    std::thread::sleep(duration);
+    measuring.store(false, Ordering::Relaxed);
+    let (secs, f1) = (t0.elapsed().as_secs_f64(), fsyncs());
+    stop.store(true, Ordering::Relaxed);
+    let (mut lat, mut rows, mut failed) = (Vec::new(), 0u64, None);
+    for h in threads {
+        match h.join() {
+            Ok(Ok((l, r))) => {
+                lat.extend(l);
+                rows += r;
+            }
+            Ok(Err(e)) => failed = Some(e),
+            Err(_) => failed = Some(ReplayError::BadRequest("a bench writer panicked".into())),
+        }
+    }
+    table.close();
+    drop(table);
+    let _ = std::fs::remove_dir_all(&dir);
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    lat.sort_by(|a, b| a.total_cmp(b));
+    let pct = |p: f64| lat.get(((lat.len() as f64 * p) as usize).min(lat.len().saturating_sub(1))).copied().unwrap_or(f64::NAN);
+    Ok(DurabilityFigures { rows_per_s: rows as f64 / secs, p50_us: pct(0.50), p99_us: pct(0.99), rows_per_fsync: rows as f64 / (f1 - f0) as f64 })
+}

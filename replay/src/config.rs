@@ -156,7 +156,8 @@ pub enum FsyncPolicy {
     /// take the last N ms of acknowledged batches. Inserts never wait for the disk.
     IntervalMs(u64),
     /// fsync before every acknowledgement: nothing acknowledged is lost even on power loss;
-    /// every insert and priority update waits for the disk, holding the table's lock.
+    /// every insert and priority update waits for the disk, without the table's lock, and
+    /// concurrent ones share one fsync (group commit, `wal.rs`). Cost: docs/reliability.md.
     Always,
 }
 

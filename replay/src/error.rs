@@ -24,6 +24,10 @@ pub enum ReplayError {
     /// Disk trouble in the log or snapshots; names the file.
     #[error("storage {path}: {problem}")]
     Storage { path: std::path::PathBuf, problem: String },
+    /// The file system holding the log or a snapshot is full (ENOSPC, EDQUOT): the change was
+    /// not stored; the same call succeeds once space is freed, without a restart.
+    #[error("disk full: {path}: {problem}; inserts are refused until space is freed there (sampling goes on)")]
+    DiskFull { path: std::path::PathBuf, problem: String },
 }
 
 impl From<mapless_net::shm::ShmError> for ReplayError {
@@ -39,6 +43,14 @@ impl From<mapless_net::shm::ShmError> for ReplayError {
 }
 
 impl ReplayError {
+    /// `what` on `path` failed with `e`: [`ReplayError::DiskFull`] when the file system is out
+    /// of space or quota, [`ReplayError::Storage`] otherwise.
+    pub(crate) fn io(path: &std::path::Path, what: impl std::fmt::Display, e: &std::io::Error) -> ReplayError {
+        let problem = format!("{what}: {e}");
+        let path = path.to_path_buf();
+        if is_disk_full(e) { ReplayError::DiskFull { path, problem } } else { ReplayError::Storage { path, problem } }
+    }
+
     /// The gRPC status a client sees.
     pub fn to_status(&self) -> tonic_status::Status {
         use tonic_status::{Code, Status};
@@ -50,8 +62,15 @@ impl ReplayError {
             ReplayError::InvalidConfig(_) => Status::new(Code::FailedPrecondition, self.to_string()),
             ReplayError::SlotsExhausted { .. } => Status::new(Code::ResourceExhausted, self.to_string()),
             ReplayError::Storage { .. } => Status::new(Code::Internal, self.to_string()),
+            // gRPC's code for "the entire file system is out of space".
+            ReplayError::DiskFull { .. } => Status::new(Code::ResourceExhausted, self.to_string()),
         }
     }
+}
+
+/// Whether `e` says the file system is out of space (ENOSPC) or out of quota (EDQUOT).
+pub(crate) fn is_disk_full(e: &std::io::Error) -> bool {
+    matches!(e.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded)
 }
 
 /// tonic's status types, re-exported so callers need not name tonic's version.

@@ -35,5 +35,5 @@ pub use config::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, SamplerConfi
 pub use error::ReplayError;
 pub use persist::{DurableTable, RecoveryReport, SnapshotInfo};
 pub use registry::{ActorRegistry, Registration};
-pub use table::{CheckpointMark, Journal, Table, TableCheckpoint};
+pub use table::{CheckpointMark, Journal, StorageRefusal, Table, TableCheckpoint};
 pub use wal::StorageFault;

@@ -12,6 +12,7 @@
 //! | `replay_insert_rows_per_s`, `…sample_rows_per_s` | gauge | rates over the last ~10 s               |
 //! | `replay_rate_limiter_blocked_seconds_total{side}` | counter | time callers waited on the limiter  |
 //! | `replay_sample_streams_refused_total`         | counter | Sample streams refused (RESOURCE_EXHAUSTED: `max_sample_streams` open) |
+//! | `replay_storage_refusals_total{op,reason}`    | counter | insert batches / priority updates the log refused: `disk_full` (RESOURCE_EXHAUSTED) or `io_error` |
 //! | `replay_actor_{rows,batches,duplicate_batches,rejected_batches}_total` | counter | per actor |
 //! | `replay_actor_policy_version_lag`             | gauge   | newest policy seen − this actor's        |
 //! | `replay_actor_slots`                          | gauge   | actor names holding a slot (`RegisterActor`) |
@@ -30,7 +31,7 @@ use tokio::net::TcpListener;
 use crate::actors::ActorStats;
 use crate::grpc::{newest_policy_version, policy_version_lag};
 use crate::registry::ActorRegistry;
-use crate::table::Table;
+use crate::table::{StorageRefusal, Table};
 
 /// Serves `GET /metrics` for `table` and the actor slots of `registry`, and `GET /healthz` for
 /// `health`, on `listener` until `shutdown` resolves (`mapless_net::metrics`, the exporter
@@ -64,6 +65,14 @@ pub fn render(table: &Table, registry: &ActorRegistry) -> String {
             [(labels([("table", t), ("side", "insert")]), rl.inserts_blocked_ms as f64 / 1e3), (labels([("table", t), ("side", "sample")]), rl.samples_blocked_ms as f64 / 1e3)],
         )
         .counters("replay_sample_streams_refused", "Sample streams refused with RESOURCE_EXHAUSTED because max_sample_streams were open.", table_only(table.sample_streams_refused() as f64))
+        .counters(
+            "replay_storage_refusals",
+            "Insert batches (op=insert) and priority updates (op=priorities) refused because the log could not store them: reason=disk_full (RESOURCE_EXHAUSTED; accepted again once space is freed) or io_error (a failed write or fsync).",
+            [false, true].into_iter().flat_map(|priorities| {
+                let op = if priorities { "priorities" } else { "insert" };
+                StorageRefusal::ALL.map(|r| (labels([("table", t), ("op", op), ("reason", r.label())]), table.storage_refusals(priorities, r) as f64))
+            }),
+        )
         .counters("replay_actor_rows", "Rows inserted per actor.", per_actor(&|a| a.rows as f64))
         .counters("replay_actor_batches", "Batches inserted per actor (duplicates excluded).", per_actor(&|a| a.batches as f64))
         .counters("replay_actor_duplicate_batches", "Batches acknowledged as duplicates (retransmissions) per actor.", per_actor(&|a| a.duplicate_batches as f64))

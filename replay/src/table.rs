@@ -23,7 +23,9 @@
 //! ```text
 //!   Journal (set_journal)   every accepted insert and priority update is handed to it under
 //!                           the lock, before it changes anything: journal order is apply
-//!                           order, and an acknowledged change is in the journal
+//!                           order, and an acknowledged change is in the journal;
+//!                           Journal::commit, without the lock, before the acknowledgement
+//!                           (group commit under fsync: always)
 //!   checkpoint[_into]       a value holding everything but the rows (priorities, live flags,
 //!                           counters, de-dup marks, the sampler's random state) and the
 //!                           journal position it is consistent with; an O(capacity) copy under
@@ -172,6 +174,11 @@ impl State {
     }
 
     /// The ack for a batch at or below its actor's last stored sequence (counted), if it is one.
+    /// The journal and its position now, for [`Journal::commit`] once the lock is released.
+    fn commit_point(&self) -> Option<(Arc<dyn Journal>, u64)> {
+        self.journal.as_ref().map(|j| (Arc::clone(j), j.position()))
+    }
+
     fn duplicate_ack(&mut self, batch: &TransitionBatch) -> Option<InsertAck> {
         let size = self.size;
         let a = self.actors.get_mut(&batch.actor_id)?;
@@ -203,6 +210,10 @@ impl State {
     }
 }
 
+/// Index of [`Table::storage_refusals`]' first dimension.
+const INSERT: usize = 0;
+const PRIORITIES: usize = 1;
+
 /// One replay table. Share it with `Arc`; every method takes `&self`.
 pub struct Table {
     cfg: TableConfig,
@@ -213,6 +224,8 @@ pub struct Table {
     /// Sample streams the transport refused because too many were open (see
     /// [`Table::record_sample_stream_refused`]).
     sample_streams_refused: AtomicU64,
+    /// Changes the journal refused: [insert batches, priority updates] × [`StorageRefusal`].
+    storage_refusals: [[AtomicU64; 2]; 2],
     started_unix_ms: u64,
     /// A journal is set: inserts encode their batch (outside the lock) for it.
     journaled: bool,
@@ -235,6 +248,45 @@ pub trait Journal: Send + Sync {
     /// How far the journal got (e.g. the last log sequence number); a checkpoint records it,
     /// read under the same lock as everything it copies.
     fn position(&self) -> u64;
+    /// Returns once every change journaled up to `position` is as durable as the journal
+    /// promises before an acknowledgement (the write-ahead log under `fsync: always`: on
+    /// disk). Called without the table's lock, after the change is applied, so that callers
+    /// arriving together share one flush (group commit); the change is visible to samplers
+    /// meanwhile, but its caller hears nothing until this returns. An `Err` reaches that
+    /// caller instead of the acknowledgement. Default: nothing to wait for.
+    fn commit(&self, position: u64) -> Result<(), ReplayError> {
+        let _ = position;
+        Ok(())
+    }
+}
+
+/// What a journal refused, for [`Table::storage_refusals`] (`replay_storage_refusals_total`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StorageRefusal {
+    /// The file system is full (or out of quota): `ReplayError::DiskFull`.
+    DiskFull,
+    /// Any other storage error (EIO, a failed fsync, a log refusing after one).
+    IoError,
+}
+
+impl StorageRefusal {
+    pub const ALL: [StorageRefusal; 2] = [StorageRefusal::DiskFull, StorageRefusal::IoError];
+
+    /// The metric label.
+    pub fn label(self) -> &'static str {
+        match self {
+            StorageRefusal::DiskFull => "disk_full",
+            StorageRefusal::IoError => "io_error",
+        }
+    }
+
+    fn of(e: &ReplayError) -> Option<StorageRefusal> {
+        match e {
+            ReplayError::DiskFull { .. } => Some(StorageRefusal::DiskFull),
+            ReplayError::Storage { .. } => Some(StorageRefusal::IoError),
+            _ => None,
+        }
+    }
 }
 
 /// Everything of a table but its rows, consistent with one journal position: what a
@@ -376,6 +428,7 @@ impl Table {
             changed: Condvar::new(),
             changed_async: tokio::sync::Notify::new(),
             sample_streams_refused: AtomicU64::new(0),
+            storage_refusals: Default::default(),
             started_unix_ms: unix_ms(),
             journaled: false,
         })
@@ -462,8 +515,9 @@ impl Table {
     /// below the actor's last stored one) is acknowledged with `duplicate = true` and changes
     /// nothing. A rejected batch changes nothing and is counted against its actor. With a
     /// [`Journal`] the batch is in the journal before it is stored and acknowledged (for the
-    /// write-ahead log: written to the OS, fsynced too under `FsyncPolicy::Always`); if the
-    /// journal refuses it, nothing is stored and its error (`Storage`) is returned.
+    /// write-ahead log: written to the OS, and under `FsyncPolicy::Always` fsynced before the
+    /// acknowledgement, see [`Journal::commit`]); if the journal refuses it, nothing is stored
+    /// and its error (`Storage`, `DiskFull`) is returned and counted.
     ///
     /// The batch's float columns may travel in either encoding (packed or `*_f32le` bytes);
     /// each column is copied into the table with one copy.
@@ -497,25 +551,55 @@ impl Table {
         };
         let mut st = self.lock();
         if let Some(ack) = st.duplicate_ack(batch) {
-            return Ok(ack);
+            // A resend of a batch stored but perhaps not yet durable: the same wait as its
+            // first acknowledgement (and the same refusal while the log refuses).
+            let pending = st.commit_point();
+            drop(st);
+            return self.commit(pending, INSERT).map(|()| ack);
         }
         st = self.wait(st, deadline, "insert", |s| s.limiter.can_insert())?;
         // Another caller may have stored the same batch while this one waited.
         if let Some(ack) = st.duplicate_ack(batch) {
-            return Ok(ack);
+            let pending = st.commit_point();
+            drop(st);
+            return self.commit(pending, INSERT).map(|()| ack);
         }
         let now_ms = unix_ms();
         let s = &mut *st;
-        if let (Some(journal), Some(bytes)) = (s.journal.as_ref(), encoded) {
-            journal.insert(s.next_key, rows as u64, now_ms, bytes)?;
+        if let (Some(journal), Some(bytes)) = (s.journal.as_ref(), encoded)
+            && let Err(e) = journal.insert(s.next_key, rows as u64, now_ms, bytes)
+        {
+            drop(st);
+            self.count_refusal(INSERT, &e);
+            return Err(e);
         }
         s.store_rows(batch, rows, &self.cfg);
         s.insert_rate.add(Instant::now(), rows as u64);
         s.note_insert(batch, rows, now_ms);
         let ack = InsertAck { actor_id: batch.actor_id.clone(), sequence: batch.sequence, accepted_rows: rows as u32, duplicate: false, table_size: s.size };
+        let pending = st.commit_point();
         drop(st);
         self.wake();
+        self.commit(pending, INSERT)?;
         Ok(ack)
+    }
+
+    /// Waits for the journal's [`Journal::commit`] of `pending` (no lock held); counts a refusal.
+    fn commit(&self, pending: Option<(Arc<dyn Journal>, u64)>, op: usize) -> Result<(), ReplayError> {
+        let Some((journal, position)) = pending else { return Ok(()) };
+        journal.commit(position).inspect_err(|e| self.count_refusal(op, e))
+    }
+
+    fn count_refusal(&self, op: usize, e: &ReplayError) {
+        if let Some(r) = StorageRefusal::of(e) {
+            self.storage_refusals[op][r as usize].fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Insert batches (`priorities` false) or priority updates (true) that the journal refused
+    /// for `reason`: never stored, or stored but never acknowledged.
+    pub fn storage_refusals(&self, priorities: bool, reason: StorageRefusal) -> u64 {
+        self.storage_refusals[priorities as usize][reason as usize].load(Ordering::Relaxed)
     }
 
     /// Counts a rejected batch against its actor (any ingest path calls this for input it
@@ -741,10 +825,17 @@ impl Table {
         let mut st = self.lock();
         let s = &mut *st;
         let known: Vec<(u64, f64)> = keys.iter().zip(priorities).filter(|(k, _)| s.holds(**k, cap)).map(|(&k, &p)| (k, p)).collect();
-        if let Some(journal) = s.journal.as_ref().filter(|_| !known.is_empty()) {
-            journal.priorities(&known)?;
+        if let Some(journal) = s.journal.as_ref().filter(|_| !known.is_empty())
+            && let Err(e) = journal.priorities(&known)
+        {
+            drop(st);
+            self.count_refusal(PRIORITIES, &e);
+            return Err(e);
         }
         let updated = s.apply_priorities(&known, alpha, epsilon, cap);
+        let pending = if known.is_empty() { None } else { st.commit_point() };
+        drop(st);
+        self.commit(pending, PRIORITIES)?;
         Ok((updated as u32, (keys.len() - updated) as u32))
     }
 

@@ -21,11 +21,30 @@
 //!
 //! Guarantees: a record is acknowledged once `write(2)` returned for all of it, so it survives
 //! the process dying (kill -9); `FsyncPolicy` decides what survives power loss (every record
-//! under `always`, all but the last `interval_ms` under `interval_ms`). Recovery detects a
-//! torn record (cut short: a crash mid-write) and a corrupt one (bad length, checksum, LSN,
-//! kind or payload), keeps everything before the first such record and sets the rest aside.
-//! A failed write is rolled back (truncated) so later records stay readable; if that fails, or
-//! an fsync fails, the log refuses further appends until it is reopened.
+//! under `always`, all but the last `interval_ms` under `interval_ms`). Under `always` the
+//! fsync is a group commit ([`WalSync::commit`]): records are written under the table's lock,
+//! the caller then waits without that lock for one fsync that covers its record and every
+//! other record written before the fsync began. Recovery detects a torn record (cut short: a
+//! crash mid-write) and a corrupt one (bad length, checksum, LSN, kind or payload), keeps
+//! everything before the first such record and sets the rest aside.
+//!
+//! Faults of the disk (docs/reliability.md, "Faults of the disk"):
+//! - A failed write (ENOSPC on a full disk, EIO) is rolled back: the file is truncated to the
+//!   last whole record, the record's LSN is not used, the caller gets the error (`DiskFull`
+//!   or `Storage`), and the next append simply tries again, so the log accepts records again
+//!   as soon as space returns, without a restart. If the rollback itself fails the tail is
+//!   unknown and the log refuses appends until it is reopened (recovery cuts the tail).
+//! - A failed fsync is not retried: the log refuses every append, and every acknowledgement
+//!   that would need the disk, until it is reopened. After a failed fsync Linux may already
+//!   have marked the unwritten pages clean (and reports the error to one fsync caller only),
+//!   so a second fsync that succeeds proves nothing about the records written before it:
+//!   PostgreSQL's "fsyncgate" (2018) lesson. Rewriting those records into a new segment would
+//!   need the old segment cut back, which is itself a write to the failing file. Reopening
+//!   (a restart) recovers from what the disk really holds: everything acknowledged as durable
+//!   is there; a record whose fsync failed was never acknowledged, and comes back or not.
+//! - Each fault is logged once, when the log goes from accepting to refusing appends (and once
+//!   more when it accepts again); every refused change is counted by the table
+//!   (`replay_storage_refusals_total`), not logged.
 //!
 //! Threading: [`Wal`] is the table's journal (`persist/mod.rs`, behind its own mutex); the
 //! table appends to it under the table's lock, so log order is apply order. Forcing data to
@@ -34,7 +53,7 @@
 use std::fs::{self, File, OpenOptions};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use mapless_proto::atomic_file::{AtomicWriteError, Durability, is_temp_file_name, write_file_atomically_with};
@@ -82,7 +101,7 @@ pub(crate) fn parse_numbered_name(name: &str, prefix: &str, suffix: &str) -> Opt
 /// A failed atomic write (a snapshot, a new log segment) as a storage error: the path the
 /// failed step acted on, the step and what the OS said.
 pub(crate) fn atomic_write_storage(e: AtomicWriteError) -> ReplayError {
-    storage(&e.path, format!("{}: {}", e.step, e.error))
+    ReplayError::io(&e.path, e.step, &e.error)
 }
 
 /// fsyncs a directory so that files created, renamed or removed in it survive power loss.
@@ -363,7 +382,14 @@ pub(crate) fn replay(scan: &mut LogScan, mut visit: impl FnMut(&RawRecord<'_>) -
 // ---------------------------------------------------------------------------------------------
 // Writing
 
-/// The fsync side of the log, shared with the background flusher and the snapshot writer.
+/// The fsync side of the log, shared with the background flusher, the snapshot writer and
+/// (under `always`) every caller waiting for its acknowledgement.
+///
+/// Group commit: `written_lsn` is raised after each record is written; a sync reads it
+/// *before* it fsyncs, and afterwards raises `durable_lsn` to what it read. A caller waiting
+/// for LSN n takes `sync_lock` only while `durable_lsn < n`, and rechecks it once it holds the
+/// lock: callers that queued behind one fsync find their records covered by it and leave
+/// without another. Cost: one fsync per group, whatever the number of concurrent writers.
 pub(crate) struct WalSync {
     dir: PathBuf,
     files: Mutex<SyncFiles>,
@@ -373,6 +399,38 @@ pub(crate) struct WalSync {
     sync_lock: Mutex<()>,
     /// Set when an fsync failed: what was acknowledged may not be on disk, so appends stop.
     failed: Mutex<Option<String>>,
+    /// LSN of the last record written to the OS (0 before the first).
+    written_lsn: AtomicU64,
+    /// LSN up to which every record is known to be on stable storage.
+    durable_lsn: AtomicU64,
+    /// fsync rounds that succeeded (each may cover many records).
+    fsyncs: AtomicU64,
+    /// Faults logged: one per change from accepting to refusing appends.
+    faults_reported: AtomicU64,
+    #[cfg(test)]
+    pub(crate) inject: InjectedFaults,
+}
+
+/// The test seam of the log's file layer: errors (as errno values) that the next writes and
+/// fsyncs return instead of touching the disk, and a hook run inside a sync round before it
+/// decides what the round covers. Test builds only.
+#[cfg(test)]
+#[derive(Default)]
+pub(crate) struct InjectedFaults {
+    /// The next writes fail with these errnos, in order; each first writes half its record,
+    /// as a disk that fills mid-record does.
+    pub writes: Mutex<std::collections::VecDeque<i32>>,
+    /// The next fsyncs of the current segment fail with these errnos, in order.
+    pub fsyncs: Mutex<std::collections::VecDeque<i32>>,
+    #[allow(clippy::type_complexity)]
+    pub before_sync: Mutex<Option<Box<dyn Fn(&WalSync) + Send + Sync>>>,
+}
+
+#[cfg(test)]
+impl InjectedFaults {
+    fn next(q: &Mutex<std::collections::VecDeque<i32>>) -> Option<std::io::Error> {
+        lock(q).pop_front().map(std::io::Error::from_raw_os_error)
+    }
 }
 
 struct SyncFiles {
@@ -389,9 +447,61 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl WalSync {
+    fn new(dir: PathBuf, current: (PathBuf, Arc<File>), last_lsn: u64) -> WalSync {
+        WalSync {
+            dir,
+            files: Mutex::new(SyncFiles { current, retired: Vec::new(), dir_dirty: false }),
+            dirty: AtomicBool::new(false),
+            sync_lock: Mutex::new(()),
+            failed: Mutex::new(None),
+            written_lsn: AtomicU64::new(last_lsn),
+            durable_lsn: AtomicU64::new(0),
+            fsyncs: AtomicU64::new(0),
+            faults_reported: AtomicU64::new(0),
+            #[cfg(test)]
+            inject: InjectedFaults::default(),
+        }
+    }
+
     /// Forces everything written so far (records, new segment files) to stable storage.
+    /// Fails at once, touching nothing, after an earlier fsync failed (see the module doc).
     pub fn sync(&self) -> Result<(), ReplayError> {
         let _one = lock(&self.sync_lock);
+        self.sync_locked()
+    }
+
+    /// Returns once the record at `lsn` and all before it are on stable storage, syncing if
+    /// no other caller's fsync covered them (group commit; see the type's doc). Fails, and
+    /// the caller must not acknowledge, when the log is refusing after a failed fsync.
+    pub fn commit(&self, lsn: u64) -> Result<(), ReplayError> {
+        self.check()?;
+        if self.durable_lsn.load(Ordering::SeqCst) >= lsn {
+            return Ok(());
+        }
+        let _one = lock(&self.sync_lock);
+        if self.durable_lsn.load(Ordering::SeqCst) >= lsn {
+            return self.check();
+        }
+        self.sync_locked()
+    }
+
+    /// `Err` while the log refuses appends after a failed fsync.
+    pub fn check(&self) -> Result<(), ReplayError> {
+        match lock(&self.failed).as_ref() {
+            Some(why) => Err(storage(&self.dir, format!("log is read-only after a failed fsync (reopen the replay to recover from what the disk holds): {why}"))),
+            None => Ok(()),
+        }
+    }
+
+    /// One sync round; `sync_lock` is held.
+    fn sync_locked(&self) -> Result<(), ReplayError> {
+        self.check()?;
+        #[cfg(test)]
+        if let Some(hook) = lock(&self.inject.before_sync).as_ref() {
+            hook(self);
+        }
+        // Read before the fsync: every record up to here is in a file this round syncs.
+        let covers = self.written_lsn.load(Ordering::SeqCst);
         self.dirty.store(false, Ordering::SeqCst);
         let (retired, current, dir_dirty) = {
             let mut f = lock(&self.files);
@@ -401,20 +511,35 @@ impl WalSync {
         let result: Result<(), ReplayError> = (|| {
             for path in &retired {
                 match File::open(path) {
-                    Ok(f) => f.sync_data().map_err(|e| storage(path, format!("fsync: {e}")))?,
+                    Ok(f) => f.sync_data().map_err(|e| ReplayError::io(path, "fsync", &e))?,
                     // Deleted after a snapshot that had already synced it.
                     Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-                    Err(e) => return Err(storage(path, format!("open to fsync: {e}"))),
+                    Err(e) => return Err(ReplayError::io(path, "open to fsync", &e)),
                 }
             }
-            current.1.sync_data().map_err(|e| storage(&current.0, format!("fsync: {e}")))?;
+            #[cfg(test)]
+            if let Some(e) = InjectedFaults::next(&self.inject.fsyncs) {
+                return Err(ReplayError::io(&current.0, "fsync", &e));
+            }
+            current.1.sync_data().map_err(|e| ReplayError::io(&current.0, "fsync", &e))?;
             if dir_dirty {
                 sync_dir(&self.dir)?;
             }
             Ok(())
         })();
-        if let Err(e) = &result {
-            *lock(&self.failed) = Some(e.to_string());
+        match &result {
+            Ok(()) => {
+                self.durable_lsn.fetch_max(covers, Ordering::SeqCst);
+                self.fsyncs.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(e) => {
+                let mut failed = lock(&self.failed);
+                if failed.is_none() {
+                    *failed = Some(e.to_string());
+                    self.faults_reported.fetch_add(1, Ordering::Relaxed);
+                    tracing::error!(log = %self.dir.display(), error = %e, "log fsync failed: records written since the last fsync may be lost; inserts are refused until the replay is reopened");
+                }
+            }
         }
         result
     }
@@ -422,6 +547,29 @@ impl WalSync {
     /// Syncs if anything was written since the last sync (the interval flusher's tick).
     pub fn sync_if_dirty(&self) -> Result<(), ReplayError> {
         if self.dirty.load(Ordering::SeqCst) { self.sync() } else { Ok(()) }
+    }
+
+    /// LSN of the last record written to the OS.
+    #[cfg(test)]
+    pub fn written_lsn(&self) -> u64 {
+        self.written_lsn.load(Ordering::SeqCst)
+    }
+
+    /// LSN up to which every record is known to be on stable storage.
+    #[cfg(test)]
+    pub fn durable_lsn(&self) -> u64 {
+        self.durable_lsn.load(Ordering::SeqCst)
+    }
+
+    /// fsync rounds that succeeded since the log was opened.
+    pub fn fsyncs(&self) -> u64 {
+        self.fsyncs.load(Ordering::Relaxed)
+    }
+
+    /// Faults logged since the log was opened (one per change from accepting to refusing).
+    #[cfg(test)]
+    pub fn faults_reported(&self) -> u64 {
+        self.faults_reported.load(Ordering::Relaxed)
     }
 }
 
@@ -450,6 +598,9 @@ pub(crate) struct Wal {
     /// Set when a failed write could not be rolled back: the segment's tail is unknown, so
     /// nothing more may be appended (recovery will cut the tail on the next open).
     poisoned: Option<String>,
+    /// Appends refused in a row by failed writes (0 while writes succeed): the first is
+    /// logged, the rest only counted, and the first success after them logged once.
+    refused_in_a_row: u64,
     sync: Arc<WalSync>,
 }
 
@@ -530,14 +681,8 @@ impl Wal {
             sync_dir(&dir)?;
         }
         let shared = Arc::new(current.try_clone().map_err(|e| storage(&current_path, format!("dup: {e}")))?);
-        let sync = Arc::new(WalSync {
-            dir: dir.clone(),
-            files: Mutex::new(SyncFiles { current: (current_path.clone(), shared), retired: Vec::new(), dir_dirty: false }),
-            dirty: AtomicBool::new(false),
-            sync_lock: Mutex::new(()),
-            failed: Mutex::new(None),
-        });
-        Ok(Wal { dir, policy, segment_bytes, current, current_path, current_len, closed, next_lsn, key_end, buf: Vec::new(), poisoned: None, sync })
+        let sync = Arc::new(WalSync::new(dir.clone(), (current_path.clone(), shared), next_lsn - 1));
+        Ok(Wal { dir, policy, segment_bytes, current, current_path, current_len, closed, next_lsn, key_end, buf: Vec::new(), poisoned: None, refused_in_a_row: 0, sync })
     }
 
     pub fn sync_handle(&self) -> Arc<WalSync> {
@@ -549,8 +694,14 @@ impl Wal {
         self.next_lsn - 1
     }
 
+    /// Whether an acknowledgement must wait for [`WalSync::commit`] (`FsyncPolicy::Always`).
+    pub fn acks_wait_for_fsync(&self) -> bool {
+        self.policy == FsyncPolicy::Always
+    }
+
     /// Appends an Insert record for rows `first_key..first_key + rows`; returns its LSN once
-    /// the record has been written to the OS (and fsynced under `FsyncPolicy::Always`).
+    /// the record has been written to the OS (under `FsyncPolicy::Always` the caller then
+    /// waits for [`WalSync::commit`] of that LSN before acknowledging).
     pub fn append_insert(&mut self, first_key: u64, rows: u64, unix_ms: u64, batch_bytes: &[u8]) -> Result<u64, ReplayError> {
         let lsn = self.append_with(KIND_INSERT, |buf| put_insert_payload(buf, first_key, unix_ms, batch_bytes))?;
         self.key_end = first_key + rows;
@@ -564,11 +715,9 @@ impl Wal {
 
     fn append_with(&mut self, kind: u8, payload: impl FnOnce(&mut Vec<u8>)) -> Result<u64, ReplayError> {
         if let Some(why) = &self.poisoned {
-            return Err(storage(&self.current_path, format!("log is read-only after an earlier failure: {why}")));
+            return Err(storage(&self.current_path, format!("log is read-only after a write that could not be rolled back (reopen the replay to recover): {why}")));
         }
-        if let Some(why) = lock(&self.sync.failed).as_ref() {
-            return Err(storage(&self.current_path, format!("log is read-only after a failed fsync: {why}")));
-        }
+        self.sync.check()?;
         let lsn = self.next_lsn;
         let mut buf = std::mem::take(&mut self.buf);
         buf.clear();
@@ -589,6 +738,20 @@ impl Wal {
         if buf.capacity() <= 32 << 20 {
             self.buf = buf;
         }
+        match &result {
+            Ok(()) if self.refused_in_a_row > 0 => {
+                tracing::warn!(log = %self.dir.display(), refused = self.refused_in_a_row, "log appends succeed again");
+                self.refused_in_a_row = 0;
+            }
+            Ok(()) => {}
+            Err(e) => {
+                if self.refused_in_a_row == 0 {
+                    self.sync.faults_reported.fetch_add(1, Ordering::Relaxed);
+                    tracing::error!(log = %self.dir.display(), error = %e, "log append failed; changes are refused (and counted) until an append succeeds");
+                }
+                self.refused_in_a_row += 1;
+            }
+        }
         result.map(|()| lsn)
     }
 
@@ -598,56 +761,50 @@ impl Wal {
             self.rotate(lsn)?;
         }
         let at = self.current_len;
-        if let Err(e) = self.current.write_all_at(record, at) {
-            // Take the partial record back out, or nothing after it could ever be read.
-            let problem = format!("write {} bytes at {at}: {e}", record.len());
+        if let Err(e) = self.write_at(record, at) {
+            // Take the partial record back out, or nothing after it could ever be read. The
+            // record's LSN stays unused, so the next append writes the same LSN at `at`.
+            let what = format!("write {} bytes at {at}", record.len());
             if let Err(e2) = self.current.set_len(at) {
-                self.poisoned = Some(format!("{problem}; rollback failed: {e2}"));
+                self.poisoned = Some(format!("{what}: {e}; rollback failed: {e2}"));
             }
-            return Err(storage(&self.current_path, problem));
-        }
-        if self.policy == FsyncPolicy::Always {
-            // On failure the record stays in the file but is not counted (next_lsn unchanged)
-            // and the caller applies nothing: a snapshot cannot claim it, so recovery replays
-            // it as a new record. `failed` stops any later record from reusing its LSN.
-            if let Err(e) = self.current.sync_data() {
-                let problem = format!("fsync: {e}");
-                *lock(&self.sync.failed) = Some(problem.clone());
-                return Err(storage(&self.current_path, problem));
-            }
-        } else {
-            self.sync.dirty.store(true, Ordering::SeqCst);
+            return Err(ReplayError::io(&self.current_path, what, &e));
         }
         self.current_len += record.len() as u64;
         self.next_lsn = lsn + 1;
+        self.sync.written_lsn.store(lsn, Ordering::SeqCst);
+        self.sync.dirty.store(true, Ordering::SeqCst);
         Ok(())
     }
 
-    /// Closes the current segment and starts `seg-<first_lsn>.log`.
+    /// `write_all_at` on the current segment (the test build's fault seam sits here).
+    fn write_at(&self, record: &[u8], at: u64) -> std::io::Result<()> {
+        #[cfg(test)]
+        if let Some(e) = InjectedFaults::next(&self.sync.inject.writes) {
+            self.current.write_all_at(&record[..record.len() / 2], at)?;
+            return Err(e);
+        }
+        self.current.write_all_at(record, at)
+    }
+
+    /// Closes the current segment and starts `seg-<first_lsn>.log`. The old segment joins
+    /// the segments the next sync round fsyncs, with the directory (under every policy: with
+    /// group commit the old segment's last records may not be synced yet).
     fn rotate(&mut self, first_lsn: u64) -> Result<(), ReplayError> {
         let (file, path) = create_segment(&self.dir, first_lsn)?;
-        let prepared = (|| {
-            if self.policy == FsyncPolicy::Always {
-                // The old segment is already synced record by record; make the new name durable.
-                sync_dir(&self.dir)?;
-            }
-            file.try_clone().map_err(|e| storage(&path, format!("dup: {e}")))
-        })();
-        let shared = match prepared {
+        let shared = match file.try_clone() {
             Ok(f) => Arc::new(f),
             Err(e) => {
                 // Still empty: remove it so the next append can try again.
                 let _ = fs::remove_file(&path);
-                return Err(e);
+                return Err(ReplayError::io(&path, "dup", &e));
             }
         };
         {
             let mut f = lock(&self.sync.files);
             let (old, _) = std::mem::replace(&mut f.current, (path.clone(), shared));
-            if self.policy != FsyncPolicy::Always {
-                f.retired.push(old);
-                f.dir_dirty = true;
-            }
+            f.retired.push(old);
+            f.dir_dirty = true;
         }
         let old_path = std::mem::replace(&mut self.current_path, path);
         self.closed.push(ClosedSegment { path: old_path, last_lsn: first_lsn - 1, key_end: self.key_end });

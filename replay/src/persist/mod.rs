@@ -18,6 +18,8 @@
 //! snapshots and deletes log segments no recovery can need. Lock order: table, then log.
 
 mod recovery;
+#[cfg(test)]
+mod tests;
 
 use std::ops::Deref;
 use std::path::PathBuf;
@@ -84,7 +86,8 @@ impl DurableTable {
         let store = SnapshotStore::open(dir.join("snapshots"), SNAPSHOTS_KEPT)?;
         let (wal, report) = recovery::recover(&table, &store, &wal_dir, &persistence)?;
         let sync = wal.sync_handle();
-        let journal = Arc::new(WalJournal { wal: Mutex::new(wal), _lock_file: lock_file });
+        let acks_wait_for_fsync = wal.acks_wait_for_fsync();
+        let journal = Arc::new(WalJournal { wal: Mutex::new(wal), sync: Arc::clone(&sync), acks_wait_for_fsync, _lock_file: lock_file });
         table.set_journal(Arc::clone(&journal) as Arc<dyn Journal>);
         let table = Arc::new(table);
         let shared =
@@ -106,6 +109,12 @@ impl DurableTable {
     /// one). It outlives this handle only closed: [`DurableTable::close`] closes it.
     pub fn table(&self) -> &Arc<Table> {
         &self.table
+    }
+
+    /// The log's fsync side (`None` for a memory-only table): its counters, and in test builds
+    /// its fault seam.
+    pub(crate) fn wal_sync(&self) -> Option<&Arc<WalSync>> {
+        self.persist.as_ref().map(|p| &p.shared.sync)
     }
 
     /// Writes a snapshot now (waiting for one in progress); `None` for a memory-only table or
@@ -148,6 +157,9 @@ impl Drop for DurableTable {
 /// mutex here is only ever contended by a snapshot handing back obsolete segments.
 struct WalJournal {
     wal: Mutex<Wal>,
+    sync: Arc<WalSync>,
+    /// `FsyncPolicy::Always`: [`Journal::commit`] waits for the group commit.
+    acks_wait_for_fsync: bool,
     /// Held (flock) while the log is open, i.e. as long as the table or a background thread
     /// holds the journal: two writers would interleave their logs.
     _lock_file: std::fs::File,
@@ -164,6 +176,10 @@ impl Journal for WalJournal {
 
     fn position(&self) -> u64 {
         lock_plain(&self.wal).last_lsn()
+    }
+
+    fn commit(&self, position: u64) -> Result<(), ReplayError> {
+        if self.acks_wait_for_fsync { self.sync.commit(position) } else { self.sync.check() }
     }
 }
 
@@ -211,9 +227,8 @@ impl PersistShared {
             let every = Duration::from_millis(ms);
             let started = std::thread::Builder::new().name(format!("wal-flush-{name}")).spawn(move || {
                 while !sh.wait_stop(every) {
-                    if let Err(e) = sh.sync.sync_if_dirty() {
-                        tracing::error!(table = %sh.table.config().name, error = %e, "log fsync failed; further inserts are refused");
-                    }
+                    // A failure is logged once by WalSync and refuses appends from then on.
+                    let _ = sh.sync.sync_if_dirty();
                 }
             });
             match started {
@@ -225,11 +240,24 @@ impl PersistShared {
             let sh = Arc::clone(shared);
             let every = Duration::from_secs_f64(p.snapshot_interval_s);
             let started = std::thread::Builder::new().name(format!("snapshot-{name}")).spawn(move || {
+                // A failure that repeats (a full disk, a log refusing after a failed fsync) is
+                // logged when it starts and when it ends, not every interval.
+                let mut failing = false;
                 while !sh.wait_stop(every) {
                     match sh.snapshot_if_changed() {
-                        Ok(Some(i)) => tracing::debug!(table = %sh.table.config().name, lsn = i.lsn, copy_us = i.copy.as_micros() as u64, write_ms = i.write.as_millis() as u64, segments_deleted = i.segments_deleted, "snapshot written"),
-                        Ok(None) => {}
-                        Err(e) => tracing::warn!(table = %sh.table.config().name, error = %e, "snapshot failed; the log still holds everything"),
+                        Ok(i) => {
+                            if std::mem::take(&mut failing) {
+                                tracing::info!(table = %sh.table.config().name, "snapshots succeed again");
+                            }
+                            if let Some(i) = i {
+                                tracing::debug!(table = %sh.table.config().name, lsn = i.lsn, copy_us = i.copy.as_micros() as u64, write_ms = i.write.as_millis() as u64, segments_deleted = i.segments_deleted, "snapshot written");
+                            }
+                        }
+                        Err(e) if !failing => {
+                            failing = true;
+                            tracing::warn!(table = %sh.table.config().name, error = %e, "snapshot failed; the log still holds everything (retried every interval, logged again once it succeeds)");
+                        }
+                        Err(_) => {}
                     }
                 }
             });
