@@ -335,7 +335,9 @@ impl InsertClient {
             Ok(Ok(Some(ack))) => self.on_ack(ack).map(|()| true),
             Ok(Ok(None)) => Err(NetError::Grpc { service: "replay", endpoint: endpoint.uri().to_owned(), code: tonic::Code::Unavailable, message: "insert stream ended".into() }),
             Ok(Err(status)) => {
-                if matches!(status.code(), tonic::Code::InvalidArgument | tonic::Code::FailedPrecondition | tonic::Code::ResourceExhausted) {
+                // RESOURCE_EXHAUSTED is the replay's disk being full: the batch stays in the
+                // window and is resent, with backoff, until the replay can store it again.
+                if matches!(status.code(), tonic::Code::InvalidArgument | tonic::Code::FailedPrecondition) {
                     // The oldest unacknowledged batch was refused; resending it cannot help.
                     if let Some(b) = self.window.pop_front() {
                         self.stats.rejected += 1;
@@ -411,6 +413,7 @@ impl InsertClient {
             let left = deadline.saturating_duration_since(Instant::now());
             if let Err(e) = self.next_ack(left.min(Duration::from_millis(200))) {
                 self.note_error(&e);
+                std::thread::sleep(Duration::from_millis(100).min(deadline.saturating_duration_since(Instant::now())));
             }
         }
         self.window.is_empty()

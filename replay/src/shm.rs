@@ -461,6 +461,11 @@ impl Ingest {
                 self.counters.rejected_batches.fetch_add(1, Ordering::Relaxed);
                 respond(&request, WireAck::failed(sequence, CODE_INVALID, &e.to_string()));
             }
+            // A full disk is reported once by the log and counted; the actor resends.
+            Err(e @ ReplayError::DiskFull { .. }) => {
+                tracing::debug!(actor_id = %actor_id, sequence, error = %e, "shm insert refused: disk full");
+                respond(&request, WireAck::failed(sequence, CODE_UNAVAILABLE, &e.to_string()));
+            }
             Err(e) => {
                 tracing::warn!(actor_id = %actor_id, sequence, error = %e, "shm insert failed");
                 respond(&request, WireAck::failed(sequence, CODE_UNAVAILABLE, &e.to_string()));

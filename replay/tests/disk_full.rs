@@ -65,13 +65,17 @@ fn persist(dir: &Path) -> PersistenceConfig {
 
 /// 100 rows (about 6 KB as a record) whose reward is `seq * 1000 + i`.
 fn batch(seq: u64) -> TransitionBatch {
+    batch_of("filler-actor", seq)
+}
+
+fn batch_of(actor: &str, seq: u64) -> TransitionBatch {
     let mut b = TransitionBatchBuilder::new(D, 2);
     for i in 0..100 {
         let r = (seq * 1000 + i) as f32;
         b.push(Transition { obs: &[r, 0.5, -r], action: &[0.1, -0.1], reward: r, next_obs: &[r, 1.0, 0.0], terminal: false, truncated: i == 99, episode_id: seq, step: i as u32, policy_version: 1 })
             .unwrap();
     }
-    b.finish("filler-actor", seq)
+    b.finish(actor, seq)
 }
 
 async fn client(addr: SocketAddr) -> ReplayServiceClient<Channel> {
@@ -168,6 +172,16 @@ fn a_full_disk_refuses_inserts_with_resource_exhausted_keeps_sampling_and_accept
     assert_eq!(metric(&text, r#"replay_storage_refusals_total{table="transitions",op="insert",reason="disk_full"}"#), 3.0);
     assert_eq!(metric(&text, r#"replay_storage_refusals_total{table="transitions",op="insert",reason="io_error"}"#), 0.0);
 
+    // An actor's insert client (mapless-net) keeps a refused batch and resends it: nothing is
+    // dropped while the disk is full, and the batch is stored once space returns (below).
+    let mut actor = mapless_net::insert::InsertClient::new(rt.handle().clone(), mapless_net::GrpcEndpoint::new(format!("http://{addr}")), 4);
+    let never = std::sync::atomic::AtomicBool::new(false);
+    actor.send(batch_of("net-actor", 1), &never).unwrap();
+    assert!(!actor.flush(std::time::Instant::now() + Duration::from_millis(1500)), "not acknowledged while the disk is full");
+    assert_eq!((actor.stats().acked, actor.stats().rejected), (0, 0), "kept, not dropped: {:?}", actor.stats());
+    assert!(table.storage_refusals(false, StorageRefusal::DiskFull) > 3, "the client resent it");
+    assert_eq!(table.size(), 500);
+
     // Sampling goes on; a snapshot cannot be written, and leaves nothing behind.
     assert_eq!(rt.block_on(sample(&mut c, 64)).unwrap(), 64);
     let e = table.snapshot().unwrap_err();
@@ -181,8 +195,11 @@ fn a_full_disk_refuses_inserts_with_resource_exhausted_keeps_sampling_and_accept
     assert!(!ack.duplicate && ack.accepted_rows == 100, "{ack:?}");
     assert!(table.snapshot().unwrap().is_some(), "snapshots work again");
     rt.block_on(insert(&mut c, batch(7))).unwrap();
+    assert!(actor.flush(std::time::Instant::now() + PATIENCE), "the kept batch is stored once space returns");
+    assert_eq!((actor.stats().acked, actor.stats().rejected), (1, 0), "{:?}", actor.stats());
+    drop(actor);
     let stored = contents(table.table());
-    assert_eq!(stored.len(), 700);
+    assert_eq!(stored.len(), 800);
 
     let _ = stop_tx.send(());
     rt.block_on(async { tokio::time::timeout(PATIENCE, server).await }).unwrap().unwrap().unwrap();
@@ -195,6 +212,7 @@ fn a_full_disk_refuses_inserts_with_resource_exhausted_keeps_sampling_and_accept
     assert!(report.fault.is_none(), "{:?}", report.fault);
     assert_eq!(contents(&again), stored);
     assert_eq!(again.actors()["filler-actor"].last_sequence, 7);
+    assert_eq!(again.actors()["net-actor"].last_sequence, 1);
     drop(again);
     drop(disk);
 }
