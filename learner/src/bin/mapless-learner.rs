@@ -94,6 +94,12 @@ struct BenchArgs {
     /// One JSON object per line: {"bench", "config", "value", "unit"}.
     #[arg(long)]
     json: bool,
+    /// Minibatch size (default: the learner config's default, 128).
+    #[arg(long)]
+    batch_size: Option<usize>,
+    /// Hidden layer width (default: the learner config's default, 256).
+    #[arg(long)]
+    hidden_width: Option<i64>,
 }
 
 fn main() -> ExitCode {
@@ -294,7 +300,12 @@ fn run(config_path: &Path) -> Result<()> {
 /// `mapless-learner bench`: updates per second, and the matrix-product ceiling they are held
 /// against (`mapless_learner::ceiling`).
 fn bench(a: &BenchArgs) -> Result<()> {
-    let BenchArgs { seconds, ref device, ref threads, ref algos, unfused, autograd, json } = *a;
+    let BenchArgs { seconds, ref device, ref threads, ref algos, unfused, autograd, json, batch_size, hidden_width } = *a;
+    let defaults = LearnerConfig::default();
+    let (batch_size, hidden_width) = (batch_size.unwrap_or(defaults.batch_size), hidden_width.unwrap_or(defaults.hidden_width));
+    if batch_size == 0 || hidden_width < 1 {
+        bail!("--batch-size and --hidden-width must be ≥ 1");
+    }
     if !(seconds > 0.0) || threads.is_empty() || threads.contains(&0) {
         bail!("--seconds must be > 0 and every --threads count ≥ 1");
     }
@@ -311,14 +322,14 @@ fn bench(a: &BenchArgs) -> Result<()> {
         })
         .collect::<Result<Vec<_>>>()?;
     if !json {
-        println!("learner updates per second on {device}: obs {obs_dim}, act {act_dim}, 2×256 hidden, minibatch 128, {seconds} s each");
+        println!("learner updates per second on {device}: obs {obs_dim}, act {act_dim}, 2×{hidden_width} hidden, minibatch {batch_size}, {seconds} s each");
     }
     let dev = device::available(device)?;
     for &t in threads.iter() {
         TorchThreads { intra_op: t, inter_op: 1 }.apply()?;
         // The bound every algorithm is measured against: libtorch's product of the hidden
         // layer's shape, here, with these threads (mapless_learner::ceiling).
-        let base = LearnerConfig::default();
+        let base = LearnerConfig { batch_size, hidden_width, ..LearnerConfig::default() };
         let shape = format!("{}x{}x{}", base.batch_size, base.hidden_width, base.hidden_width);
         let mut f32_gflops = 0.0;
         for (name, bf16) in [("f32", false), ("bf16", true)] {
@@ -338,7 +349,7 @@ fn bench(a: &BenchArgs) -> Result<()> {
                 variants.push((false, false));
             }
             for (fused_update, fused) in variants {
-                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, ..LearnerConfig::default() };
+                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, batch_size, hidden_width, ..LearnerConfig::default() };
                 // libtorch fixes the inter-op pool once per process; only the intra-op count varies.
                 let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
                 // The fused update runs on the CPU only; elsewhere the autograd path runs.
