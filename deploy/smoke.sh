@@ -13,8 +13,13 @@
 #      new incarnation (a new actor id on the same slot) writes;
 #   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write;
 #   5. `up -d --scale actor=2`: two replicas are left and keep writing;
-#   6. `docker-compose stop` ends the learner with a final checkpoint;
-#   7. `down -v` leaves no container, network or volume of the project behind.
+#   6. `restart replay`: its rows come back from its volume and the actors write again;
+#   7. one replica cut off the network for 15 s (`docker network disconnect`) writes again once
+#      reconnected;
+#   8. the two replicas, stopped, each report the rows they sent, all acknowledged, and the
+#      replay holds exactly that many under each one's id (nothing lost, nothing twice);
+#   9. `docker-compose stop` ends the learner with a final checkpoint;
+#  10. `down -v` leaves no container, network or volume of the project behind.
 #
 # Usage: deploy/smoke.sh   (SKIP_IMAGES=1 reuses built images; KEEP=1 leaves the cluster up;
 #                           ACTORS=N replicas at first, default 4)
@@ -22,7 +27,8 @@
 # `docker kill` counts as a deliberate stop and turns the restart policy off; and the replay's
 # /metrics is read on its container's loopback (nsenter into its network namespace), since no
 # port is published.
-# Not part of ./test.sh: it needs a Docker engine and builds a multi-GB learner image.
+# The suite runs it (`tests/compose_drill.rs`, with MAPLESS_PROFILE=dev) wherever a Docker engine
+# answers; it builds a multi-GB learner image (layers reused on a rerun).
 set -euo pipefail
 here="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$here"
@@ -146,6 +152,57 @@ both_grow() {
 }
 wait_for 120 "scaled to 2: the two replicas left (${!before[*]}) keep writing" both_grow
 echo "smoke: learner at $(learner_field updates) updates, weights v$(learner_field weights_version)"
+
+# Rows in the replay's table (the exposition writes floats).
+table_size() { replay_metrics | sed -n 's/^replay_size{.*} \([0-9.e+]*\)$/\1/p' | awk '{ printf "%d", $1 }'; }
+# Every id in `before` has more rows than recorded there; then records the new counts.
+grown_since() { both_grow; }
+remember_rows() { local id; for id in "${!before[@]}"; do before[$id]=$(rows_of "$id"); done; }
+replay_healthy() { [ "$(docker inspect -f '{{.State.Health.Status}}' "$(dc ps -q replay)")" = healthy ]; }
+
+size_before=$(table_size); remember_rows
+declare -A kept
+for id in "${!before[@]}"; do kept[$id]=${before[$id]}; done
+echo "smoke: restart the replay container (${size_before} rows stored)"
+dc restart -t 60 replay >/dev/null 2>&1
+wait_for 180 "the replay is healthy again" replay_healthy
+size_after=$(table_size)
+[ "${size_after:-0}" -ge "$size_before" ] || { echo "smoke: the replay came back with ${size_after:-no} rows, ${size_before} before" >&2; exit 1; }
+for id in "${!kept[@]}"; do
+    awk -v a="$(rows_of "$id")" -v b="${kept[$id]}" 'BEGIN { exit !(a >= b) }' || { echo "smoke: $id had ${kept[$id]} rows before the restart, $(rows_of "$id") after" >&2; exit 1; }
+done
+echo "smoke: ok: the replay's contents came back from its volume (${size_before} rows before, ${size_after} after)"
+wait_for 120 "the actors reconnected and write again" grown_since
+
+cut=$(dc ps -q actor | head -1)
+net=$(docker inspect -f '{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}' "$cut" | awk '{ print $1 }')
+remember_rows
+echo "smoke: cut replica ${cut:0:12} ($(id_of "$cut")) off network $net for 15 s"
+docker network disconnect "$net" "$cut"
+sleep 15
+docker network connect "$net" "$cut"
+# Its connections either resume (TCP retransmits, backed off to several seconds by now) or are
+# found dead by the HTTP/2 keepalive (a ping every 10 s, 20 s to answer) and reopened, the
+# unacknowledged batches resent; give that its 30 s before judging.
+sleep 30
+remember_rows
+wait_for 120 "the cut-off replica is back and writes again" grown_since
+
+# Exactly-once: each actor, stopped, prints a report of the rows it handed to its sink and
+# whether all were acknowledged; the replay must hold exactly that many rows under its id, after
+# a replay restart and a network cut (resends are acknowledged as duplicates, not stored twice).
+ids=$(dc ps -q actor)
+dc stop -t 60 actor >/dev/null 2>&1
+for c in $ids; do
+    report=$(docker logs "$c" 2>/dev/null | grep '^{"actor_id"' | tail -1)
+    id=$(grep -o '"actor_id":"[^"]*"' <<<"$report" | cut -d'"' -f4)
+    sent=$(grep -o '"rows":[0-9]*' <<<"$report" | cut -d: -f2)
+    [ -n "$id" ] && [ -n "$sent" ] || { echo "smoke: replica ${c:0:12} printed no report at its stop" >&2; exit 1; }
+    grep -q '"unacked_at_exit":false' <<<"$report" || { echo "smoke: $id stopped with unacknowledged rows" >&2; exit 1; }
+    stored=$(rows_of "$id" | awk '{ printf "%d", $1 }')
+    [ "$stored" = "$sent" ] || { echo "smoke: $id sent $sent rows, the replay holds ${stored:-none} under its id" >&2; exit 1; }
+    echo "smoke: ok: $id sent $sent rows and the replay holds exactly $stored"
+done
 
 dc stop -t 60 >/dev/null 2>&1
 # Not `grep -q`: it would stop reading at the match, and under pipefail the SIGPIPE that `logs`
