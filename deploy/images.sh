@@ -38,6 +38,9 @@ stage() {
     mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/tmp" "$dir/root/data" "$dir/root/train"
     chmod 1777 "$dir/root/tmp"
     cp "$out_dir/$bin" "$dir/root/usr/local/bin/"
+    # Symbols stay (panics still name their functions); the debug sections (line tables in
+    # release, full DWARF in dev) do not: 50 MB of a 64 MB actor image.
+    objcopy --strip-debug "$dir/root/usr/local/bin/$bin"
     # `ldd` lines: "libx.so => /path/libx.so (0x…)" and "/lib64/ld-linux-x86-64.so.2 (0x…)".
     ldd "$out_dir/$bin" | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// {print $1}' | while read -r lib; do
         case "$lib" in
