@@ -171,7 +171,10 @@ impl RoleTokens {
 /// outside [`METHOD_RIGHTS`] counts as service and method `other`, so a client inventing paths
 /// cannot grow the series without bound. Shared by every clone.
 #[derive(Clone, Default)]
-pub struct AuthRefusals(Arc<Mutex<BTreeMap<(&'static str, &'static str, &'static str), u64>>>);
+pub struct AuthRefusals(Arc<Mutex<BTreeMap<RefusalKey, u64>>>);
+
+/// (gRPC service, method, reason) of a refusal.
+type RefusalKey = (&'static str, &'static str, &'static str);
 
 impl AuthRefusals {
     fn record(&self, path: &str, reason: &'static str) {
