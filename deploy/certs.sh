@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # deploy/certs.sh — a private CA, one server certificate for the services' host names, and a
-# bearer token, in deploy/secrets/ (git-ignored). Services that listen beyond loopback refuse to
-# start without TLS and a token; this makes both for a compose or multi-host cluster.
+# bearer token per role (actor-token, learner-token), in deploy/secrets/ (git-ignored). Services
+# that listen beyond loopback refuse to start without TLS and a token; this makes both for a
+# compose or multi-host cluster.
 #
 # Usage: deploy/certs.sh [NAME...]   (default names: replay learner localhost)
 # Existing files are kept (delete deploy/secrets/ to start over). deploy/compose.yaml mounts
-# single files: actors get ca.pem and token, the services also server.pem and server.key; the
-# CA's key (ca.key) never leaves the host.
+# single files: actors get ca.pem and actor-token (insert, register, subscribe: it cannot read
+# the replay), the replay and the learner also learner-token, server.pem and server.key (each
+# service checks both tokens); the CA's key (ca.key) never leaves the host. A `token` left by
+# an older certs.sh is no longer used.
 set -euo pipefail
 umask 077
 dir="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)/secrets"
@@ -27,7 +30,9 @@ if [ ! -s server.pem ] || [ ca.pem -nt server.pem ]; then
         -extfile server.ext -out server.pem 2>/dev/null
     rm -f server.csr server.ext
 fi
-[ -s token ] || { openssl rand -hex 32 | tr -d '\n' > token; }
-chmod 600 ca.key server.key token
+for t in actor-token learner-token; do
+    [ -s "$t" ] || { openssl rand -hex 32 | tr -d '\n' > "$t"; }
+done
+chmod 600 ca.key server.key actor-token learner-token
 chmod 644 ca.pem server.pem
-echo "certs.sh: $dir: ca.pem, server.pem/server.key ($(openssl x509 -in server.pem -noout -ext subjectAltName | tail -1 | tr -d ' ')), token" >&2
+echo "certs.sh: $dir: ca.pem, server.pem/server.key ($(openssl x509 -in server.pem -noout -ext subjectAltName | tail -1 | tr -d ' ')), actor-token, learner-token" >&2

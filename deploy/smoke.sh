@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # deploy/smoke.sh — end-to-end drill of the compose cluster (deploy/compose.yaml) on this
 # machine's Docker: builds the images and secrets, starts replay + learner + $ACTORS actor
-# replicas (`--scale actor=N`, default 4) on a private network (gRPC with TLS and a token between
+# replicas (`--scale actor=N`, default 4) on a private network (gRPC with TLS and role tokens between
 # containers) and checks, printing each step and what it measured:
 #
 #   0. `up` starts the learner only once the replay is healthy and the actors once both are

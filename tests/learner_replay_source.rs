@@ -306,7 +306,7 @@ fn grpc_source_waits_for_a_service_that_is_not_up_yet_and_for_warm_up() {
 
 #[test]
 fn errors_retrying_cannot_fix_stop_the_source_with_a_clear_message() {
-    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()) }, ..ServeOptions::default() };
+    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()), ..Security::default() }, ..ServeOptions::default() };
     let replay = Replay::start(filled_table(SamplerConfig::Uniform, 20), options);
     let stopped = |config: SampleConfig, needle: &str| {
         let mut source = GrpcSource::start(config).expect("start");
@@ -343,7 +343,7 @@ fn errors_retrying_cannot_fix_stop_the_source_with_a_clear_message() {
 fn grpc_source_speaks_tls_with_a_bearer_token() {
     let cert = rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).expect("self-signed certificate");
     let (cert_pem, key_pem) = (cert.cert.pem(), cert.signing_key.serialize_pem());
-    let security = Security { tls: Some(TlsPem { cert: cert_pem.clone().into_bytes(), key: key_pem.into_bytes() }), token: Some("tok".into()) };
+    let security = Security { tls: Some(TlsPem { cert: cert_pem.clone().into_bytes(), key: key_pem.into_bytes() }), token: Some("tok".into()), ..Security::default() };
     let replay = Replay::start(filled_table(SamplerConfig::Uniform, 20), ServeOptions { security, ..ServeOptions::default() });
     let endpoint = replay.endpoint().with_tls(cert_pem.into_bytes(), Some("localhost".into())).with_token("tok");
     assert!(endpoint.uri().starts_with("https://"));

@@ -229,7 +229,7 @@ async fn shutdown_ends_open_streams_with_unavailable() {
 async fn bearer_token_is_required_when_configured() {
     let publisher = WeightsPublisher::new();
     publisher.publish(snapshot(1)).expect("v1");
-    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()) }, ..ServeOptions::default() };
+    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()), ..Security::default() }, ..ServeOptions::default() };
     let h = Harness::start(&publisher, options).await;
     match within("subscribe without token", subscribe(&h.endpoint(), 0, "")).await {
         Err(NetError::Grpc { code, .. }) => assert_eq!(code, Code::Unauthenticated),
@@ -238,6 +238,37 @@ async fn bearer_token_is_required_when_configured() {
     let endpoint = h.endpoint().with_token("open-sesame");
     let mut stream = within("subscribe", subscribe(&endpoint, 0, "")).await.expect("right token");
     assert_eq!(next(&mut stream).await.version, 1);
+    h.shutdown().await;
+}
+
+/// Tokens with a role each (issue 17): the actor's subscribes; the learner's may not (it
+/// publishes in its own process; no RPC publishes); no or a wrong token is UNAUTHENTICATED;
+/// refusals are counted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn only_the_actor_role_subscribes() {
+    let publisher = WeightsPublisher::new();
+    publisher.publish(snapshot(1)).expect("v1");
+    let role_tokens = mapless_net::RoleTokens { actor: Some("actor-tok".into()), learner: Some("learner-tok".into()) };
+    let security = Security { role_tokens, ..Security::default() };
+    let refusals = security.refusals.clone();
+    let h = Harness::start(&publisher, ServeOptions { security, ..ServeOptions::default() }).await;
+    let mut stream = within("subscribe", subscribe(&h.endpoint().with_token("actor-tok"), 0, "")).await.expect("the actor token subscribes");
+    assert_eq!(next(&mut stream).await.version, 1);
+    match within("subscribe with the learner token", subscribe(&h.endpoint().with_token("learner-tok"), 0, "")).await {
+        Err(NetError::Grpc { code, message, .. }) => {
+            assert_eq!(code, Code::PermissionDenied, "{message}");
+            assert!(message.contains("/mapless.v1.WeightsService/Subscribe") && message.contains("the actor role") && message.contains("the learner role"), "{message}");
+        }
+        other => panic!("expected PERMISSION_DENIED, got {other:?}"),
+    }
+    for (endpoint, reason) in [(h.endpoint(), "missing_token"), (h.endpoint().with_token("actor-to"), "wrong_token")] {
+        match within("subscribe", subscribe(&endpoint, 0, "")).await {
+            Err(NetError::Grpc { code, .. }) => assert_eq!(code, Code::Unauthenticated, "{reason}"),
+            other => panic!("{reason}: expected UNAUTHENTICATED, got {other:?}"),
+        }
+        assert_eq!(refusals.count("mapless.v1.WeightsService", "Subscribe", reason), 1, "{reason}");
+    }
+    assert_eq!(refusals.count("mapless.v1.WeightsService", "Subscribe", "forbidden"), 1);
     h.shutdown().await;
 }
 

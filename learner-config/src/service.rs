@@ -65,13 +65,19 @@ pub struct LearnerServiceConfig {
     /// libtorch threads (intra-op); inter-op is 1.
     #[serde(default = "one")]
     pub threads: usize,
-    /// The weights service's TLS certificate and key (required, with `auth_token_file`, on a
+    /// The weights service's TLS certificate and key (required, with a token, on a
     /// non-loopback `weights_listen`).
     #[serde(default)]
     pub tls: Option<mapless_net::TlsFiles>,
-    /// File holding the bearer token subscribers must send.
+    /// File holding a full-rights bearer token for the weights service (the one token of
+    /// configs written before `auth_token_files`; prefer those).
     #[serde(default)]
     pub auth_token_file: Option<PathBuf>,
+    /// Files holding one role's token each (`{actor: FILE, learner: FILE}`, distinct): the
+    /// actor's may `Subscribe`; the learner's only ask the health service (useful for a health
+    /// probe that holds the learner's token). Accepted beside `auth_token_file`.
+    #[serde(default, skip_serializing_if = "mapless_net::RoleTokenFiles::is_empty")]
+    pub auth_token_files: mapless_net::RoleTokenFiles,
     /// CA and token for reaching a replay service on another host.
     #[serde(default)]
     pub replay_security: mapless_net::ClientSecurity,

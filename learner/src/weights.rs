@@ -42,7 +42,6 @@ use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::server::NamedService;
 use tonic::service::Routes;
-use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 use tracing::{Instrument as _, debug, info, info_span, warn};
 
@@ -277,8 +276,9 @@ impl WeightsService for WeightsGrpc {
 /// How [`serve`] runs.
 #[derive(Clone, Debug)]
 pub struct ServeOptions {
-    /// TLS and bearer token, as for the replay service: optional on loopback, both required on
-    /// any other address.
+    /// TLS and bearer tokens, as for the replay service: optional on loopback, TLS and a token
+    /// required on any other address. `Subscribe` needs the actor role (or the full-rights
+    /// token); refusals are counted in `security.refusals`.
     pub security: Security,
     /// After the shutdown signal, how long open connections may take to close before they
     /// are cut.
@@ -329,7 +329,7 @@ pub async fn serve(listener: TcpListener, publisher: WeightsPublisher, options: 
         }
     };
     let readiness = Readiness { grpc_names: GRPC_NAMES, health: options.health.clone(), ready };
-    let make = |auth, stop| Routes::new(InterceptedService::new(WeightsGrpc::new(&publisher).with_shutdown(stop).into_server(), auth));
+    let make = |auth: mapless_net::BearerAuth, stop| Routes::new(auth.wrap(WeightsGrpc::new(&publisher).with_shutdown(stop).into_server()));
     serve_secured("the weights service", listener, &options.security, options.shutdown_grace, readiness, make, shutdown).await.map_err(|e| serve_error(addr, e.to_string()))
 }
 

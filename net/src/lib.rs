@@ -11,7 +11,7 @@
 //!
 //! - [`endpoint`]: where a service is and how to reach it (URI, TLS CA, bearer token), the
 //!   client-side [`ClientSecurity`] settings, and [`NetError`];
-//! - [`serve`]: the server side of the same rules — TLS files, bearer-token check, and
+//! - [`serve`]: the server side of the same rules — TLS files, bearer-token and role checks, and
 //!   [`serve::serve_secured`], the one way every gRPC service of the cluster is served;
 //! - [`shm`]: the shared-memory ingest's settings, wire types and the actors' [`shm::ShmWriter`];
 //! - [`insert`]: the actors' exactly-once delivery of transition batches — [`insert::InsertClient`]
@@ -41,5 +41,5 @@ pub mod stats;
 pub mod weights;
 
 pub use endpoint::{ClientSecurity, GrpcEndpoint, NetError, error_chain};
-pub use serve::{BearerAuth, Security, TlsFiles, TlsPem};
+pub use serve::{AuthRefusals, BearerAuth, Role, RoleTokenFiles, RoleTokens, Security, TlsFiles, TlsPem};
 pub mod signals;

@@ -17,6 +17,7 @@
 //! | `replay_actor_policy_version_lag`             | gauge   | newest policy seen − this actor's        |
 //! | `replay_actor_slots`                          | gauge   | actor names holding a slot (`RegisterActor`) |
 //! | `replay_actor_registrations_total{outcome}`   | counter | registrations: `new` slot, `known` name, `refused` |
+//! | `replay_auth_refusals_total{service,method,reason}` | counter | requests the token check refused: `missing_token`, `wrong_token` (UNAUTHENTICATED), `forbidden` (PERMISSION_DENIED: the token's role may not call the method) |
 //!
 //! The liveness gauge is `replay_up`, not `up`: Prometheus writes its own `up` series for
 //! every scrape target, and a scraped sample of that name would collide with it.
@@ -24,6 +25,7 @@
 use std::future::Future;
 use std::sync::Arc;
 
+use mapless_net::AuthRefusals;
 use mapless_net::health::Health;
 use mapless_net::metrics::{Exposition, Labels, labels};
 use tokio::net::TcpListener;
@@ -33,15 +35,22 @@ use crate::grpc::{newest_policy_version, policy_version_lag};
 use crate::registry::ActorRegistry;
 use crate::table::{StorageRefusal, Table};
 
-/// Serves `GET /metrics` for `table` and the actor slots of `registry`, and `GET /healthz` for
-/// `health`, on `listener` until `shutdown` resolves (`mapless_net::metrics`, the exporter
-/// every process uses).
-pub async fn serve(listener: TcpListener, table: Arc<Table>, registry: Arc<ActorRegistry>, health: Health, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry)), health, shutdown).await
+/// Serves `GET /metrics` for `table`, the actor slots of `registry` and the gRPC service's
+/// token-check `refusals`, and `GET /healthz` for `health`, on `listener` until `shutdown`
+/// resolves (`mapless_net::metrics`, the exporter every process uses).
+pub async fn serve(
+    listener: TcpListener,
+    table: Arc<Table>,
+    registry: Arc<ActorRegistry>,
+    refusals: AuthRefusals,
+    health: Health,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry, &refusals)), health, shutdown).await
 }
 
-/// The exposition text for `table` and `registry`.
-pub fn render(table: &Table, registry: &ActorRegistry) -> String {
+/// The exposition text for `table`, `registry` and `refusals`.
+pub fn render(table: &Table, registry: &ActorRegistry, refusals: &AuthRefusals) -> String {
     let slots = registry.counts();
     let info = table.info();
     let mut actors: Vec<(String, ActorStats)> = table.actors().into_iter().collect();
@@ -84,5 +93,6 @@ pub fn render(table: &Table, registry: &ActorRegistry) -> String {
             "RegisterActor calls: a new slot given out, a known name answered, or refused (bad name, no slot left, slot file not written).",
             [("new", slots.new), ("known", slots.known), ("refused", slots.refused)].map(|(outcome, n)| (labels([("table", t), ("outcome", outcome)]), n as f64)),
         );
+    refusals.write(&mut x, "replay_auth_refusals");
     x.text()
 }

@@ -2,8 +2,8 @@
 //! non-loopback listeners, and [`run`]/[`serve`], which tests start on `127.0.0.1:0`.
 //!
 //! ```text
-//!  TcpListener ─► [TLS, when configured] ─► bearer-token check ─► ReplayServiceServer(ReplayGrpc)
-//!                                             (UNAUTHENTICATED)     16 MiB limits both ways
+//!  TcpListener ─► [TLS, when configured] ─► bearer-token and role check ─► ReplayServiceServer(ReplayGrpc)
+//!                                    (UNAUTHENTICATED, PERMISSION_DENIED)     16 MiB limits both ways
 //!                                                                 + grpc.health.v1.Health
 //!  shutdown future ─► health NOT_SERVING, streams end UNAVAILABLE ─► HTTP/2 GOAWAY
 //!                  ─► at most `shutdown_grace` later, return
@@ -16,7 +16,9 @@
 //! Security rule: a loopback address is reachable only from this host, so plain HTTP/2 is
 //! allowed there; any other address (including 0.0.0.0) needs TLS *and* a bearer token, and
 //! the server refuses to start without both, because otherwise anyone who can reach the port
-//! can fill the table with garbage or read every transition.
+//! can fill the table with garbage or read every transition. With a token per role
+//! (`auth_token_files`), an actor's token may only insert and register, the learner's only
+//! sample, update priorities and read the server info (`mapless_net::serve::METHOD_RIGHTS`).
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -26,14 +28,13 @@ use std::time::Duration;
 
 use mapless_net::health::Health;
 use mapless_net::serve::{Readiness, ServeError, serve_secured};
-use mapless_net::serve::{Security, TlsFiles};
+use mapless_net::serve::{RoleTokenFiles, Security, TlsFiles};
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::replay_service_server::ReplayServiceServer;
 use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
 use tonic::server::NamedService;
 use tonic::service::Routes;
-use tonic::service::interceptor::InterceptedService;
 use tracing::info;
 
 use crate::config::{PersistenceConfig, TableConfig};
@@ -53,22 +54,31 @@ pub const DEFAULT_METRICS_LISTEN: &str = "127.0.0.1:9464";
 /// listen: 127.0.0.1:50051
 /// metrics_listen: 127.0.0.1:9464     # null disables /metrics
 /// tls: { cert: server.pem, key: server.key }
-/// auth_token_file: token.txt
+/// auth_token_files: { actor: actor-token.txt, learner: learner-token.txt }
 /// table: { name: transitions, capacity: 1000000, obs_dim: 17, act_dim: 2 }
 /// persistence: { dir: /var/lib/mapless/replay }
 /// ```
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServerConfig {
-    /// gRPC address. Loopback by default; any other address needs `tls` and `auth_token_file`.
+    /// gRPC address. Loopback by default; any other address needs `tls` and a token
+    /// (`auth_token_files` or `auth_token_file`).
     pub listen: SocketAddr,
     /// Prometheus text exposition at `http://<addr>/metrics`; none disables it.
     pub metrics_listen: Option<SocketAddr>,
     /// Server certificate chain and private key (PEM files).
     pub tls: Option<TlsFiles>,
-    /// File whose content (trimmed) is the bearer token every request must carry as
-    /// `authorization: Bearer <token>`. A file, not a flag, so the token stays out of `ps`.
+    /// File whose content (trimmed) is a full-rights bearer token: a request carrying it as
+    /// `authorization: Bearer <token>` may call every method (the one token of configs written
+    /// before `auth_token_files`; prefer those). A file, not a flag, so the token stays out of `ps`.
     pub auth_token_file: Option<PathBuf>,
+    /// Files holding one role's token each (`{actor: FILE, learner: FILE}`, trimmed, distinct):
+    /// the actor's may Insert and RegisterActor, the learner's Sample, UpdatePriorities and
+    /// ServerInfo; either may ask the health service. Another method is PERMISSION_DENIED
+    /// (counted in `replay_auth_refusals_total`), so a leaked actor token cannot read the table.
+    /// Accepted beside `auth_token_file`.
+    #[serde(skip_serializing_if = "RoleTokenFiles::is_empty")]
+    pub auth_token_files: RoleTokenFiles,
     /// Largest SampleRequest.prefetch honoured; larger requests are clamped [replay.proto: 16].
     pub max_prefetch: u32,
     /// Most Sample streams open at once; one more is refused with RESOURCE_EXHAUSTED (and
@@ -106,6 +116,7 @@ impl Default for ServerConfig {
             metrics_listen: Some(DEFAULT_METRICS_LISTEN.parse().expect("valid default address")),
             tls: None,
             auth_token_file: None,
+            auth_token_files: RoleTokenFiles::default(),
             max_prefetch: DEFAULT_MAX_PREFETCH,
             max_sample_streams: DEFAULT_MAX_SAMPLE_STREAMS,
             shutdown_grace_ms: 5_000,
@@ -137,7 +148,7 @@ pub enum ServerError {
     Read { what: &'static str, path: PathBuf, error: std::io::Error },
     #[error(
         "refusing to serve on {addr}: a non-loopback address needs TLS (tls.cert + tls.key, or --tls-cert/--tls-key) \
-         and a bearer token (auth_token_file, or --auth-token-file); without both, anyone who can reach the port can \
+         and a bearer token (auth_token_files: {{actor, learner}}, auth_token_file, or --auth-token-file); without both, anyone who can reach the port can \
          write to and read the replay table. For a local run use 127.0.0.1."
     )]
     Insecure { addr: SocketAddr },
@@ -166,7 +177,7 @@ impl ServerConfig {
         if self.max_actor_slots == 0 {
             return Err(ReplayError::InvalidConfig("max_actor_slots must be ≥ 1 (it bounds the actor names that may register)".into()).into());
         }
-        if !self.listen.ip().is_loopback() && (self.tls.is_none() || self.auth_token_file.is_none()) {
+        if !self.listen.ip().is_loopback() && (self.tls.is_none() || (self.auth_token_file.is_none() && self.auth_token_files.is_empty())) {
             return Err(ServerError::Insecure { addr: self.listen });
         }
         Ok(())
@@ -174,7 +185,7 @@ impl ServerConfig {
 
     /// Reads the TLS and token files.
     pub fn security(&self) -> Result<Security, ServerError> {
-        Ok(Security::read(self.tls.as_ref(), self.auth_token_file.as_deref())?)
+        Ok(Security::read(self.tls.as_ref(), self.auth_token_file.as_deref(), &self.auth_token_files)?)
     }
 
     /// What [`serve`] needs besides the listener and the table (with an actor-slot table in
@@ -242,10 +253,10 @@ const GRPC_NAMES: &[&str] = &[<ReplayServiceServer<ReplayGrpc> as NamedService>:
 pub async fn serve(listener: TcpListener, table: Arc<Table>, options: ServeOptions, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), ServerError> {
     let name = table.config().name.clone();
     info!(table = %name, "replay gRPC starting");
-    let make = |auth, stop| {
+    let make = |auth: mapless_net::BearerAuth, stop| {
         let grpc = ReplayGrpc::new(table).with_max_prefetch(options.max_prefetch).with_max_sample_streams(options.max_sample_streams).with_registry(Arc::clone(&options.registry)).with_shutdown(stop);
         let service = ReplayServiceServer::new(grpc).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES);
-        Routes::new(InterceptedService::new(service, auth))
+        Routes::new(auth.wrap(service))
     };
     let readiness = Readiness { grpc_names: GRPC_NAMES, health: options.health.clone(), ready: std::future::ready(()) };
     serve_secured("the replay", listener, &options.security, options.shutdown_grace, readiness, make, shutdown).await.map_err(|e| match e {
@@ -281,6 +292,17 @@ mod tests {
         assert!(matches!(c.validate(), Err(ServerError::Insecure { .. })), "a token alone is not enough");
         c.tls = Some(TlsFiles { cert: "c.pem".into(), key: "k.pem".into() });
         c.validate().unwrap();
+        c.auth_token_file = None;
+        c.auth_token_files.actor = Some("a".into());
+        c.validate().expect("a role token is a token");
+    }
+
+    #[test]
+    fn role_token_files_parse() {
+        let c: ServerConfig = serde_yaml::from_str("auth_token_files: { actor: /s/actor, learner: /s/learner }\n").unwrap();
+        assert_eq!(c.auth_token_files.actor.as_deref(), Some(Path::new("/s/actor")));
+        assert_eq!(c.auth_token_files.learner.as_deref(), Some(Path::new("/s/learner")));
+        assert!(serde_yaml::from_str::<ServerConfig>("auth_token_files: { sampler: /s/x }\n").is_err(), "unknown role");
     }
 
     #[test]

@@ -168,7 +168,7 @@ fn a_full_disk_refuses_inserts_with_resource_exhausted_keeps_sampling_and_accept
     }
     assert_eq!(table.size(), 500);
     assert_eq!(table.storage_refusals(false, StorageRefusal::DiskFull), 3);
-    let text = metrics::render(table.table(), &registry);
+    let text = metrics::render(table.table(), &registry, &Default::default());
     assert_eq!(metric(&text, r#"replay_storage_refusals_total{table="transitions",op="insert",reason="disk_full"}"#), 3.0);
     assert_eq!(metric(&text, r#"replay_storage_refusals_total{table="transitions",op="insert",reason="io_error"}"#), 0.0);
 

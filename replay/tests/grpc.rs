@@ -168,7 +168,7 @@ fn sample_request(batch_size: u32) -> SampleRequest {
     SampleRequest { protocol_version: V1, table: String::new(), batch_size, prefetch: 1, timeout_ms: 5_000, max_batches: 1, importance_beta: 0.0, float_columns_as_bytes: false }
 }
 
-async fn sample_all(client: &mut ReplayServiceClient<Channel>, req: SampleRequest) -> (Vec<SampledBatch>, Option<Status>) {
+async fn sample_all(client: &mut ReplayServiceClient<Channel>, req: impl tonic::IntoRequest<SampleRequest>) -> (Vec<SampledBatch>, Option<Status>) {
     let mut stream = match within("sample", client.sample(req)).await {
         Ok(r) => r.into_inner(),
         Err(status) => return (Vec::new(), Some(status)),
@@ -727,7 +727,7 @@ async fn a_thousand_sample_streams_are_each_served_or_refused_and_inserts_and_up
 
     // Refusals are counted, in /metrics too.
     assert_eq!(h.table.sample_streams_refused(), refused as u64);
-    let samples = parse_exposition(&metrics::render(&h.table, &ActorRegistry::default()));
+    let samples = parse_exposition(&metrics::render(&h.table, &ActorRegistry::default(), &Default::default()));
     let counted = samples.iter().find(|(s, _)| s == r#"replay_sample_streams_refused_total{table="transitions"}"#).expect("refusal counter exported");
     assert_eq!(counted.1, refused as f64);
 
@@ -804,7 +804,7 @@ async fn metrics_endpoint_serves_prometheus_text() {
     let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("addr");
     let (stop, stopped) = oneshot::channel::<()>();
-    let server = tokio::spawn(metrics::serve(listener, Arc::clone(&h.table), Arc::default(), Default::default(), async {
+    let server = tokio::spawn(metrics::serve(listener, Arc::clone(&h.table), Arc::default(), Default::default(), Default::default(), async {
         let _ = stopped.await;
     }));
     let (status, headers, body) = tokio::task::spawn_blocking(move || http_get(addr, "/metrics")).await.expect("get");
@@ -841,7 +841,7 @@ async fn non_loopback_listener_without_tls_and_token_is_refused() {
     assert!(matches!(err, ServerError::Insecure { .. }), "{err}");
     assert!(err.to_string().contains("TLS") && err.to_string().contains("token"), "{err}");
     let listener = TcpListener::bind("0.0.0.0:0").await.expect("bind all interfaces");
-    let token_only = ServeOptions { security: Security { tls: None, token: Some("t".into()) }, ..ServeOptions::default() };
+    let token_only = ServeOptions { security: Security { tls: None, token: Some("t".into()), ..Security::default() }, ..ServeOptions::default() };
     assert!(matches!(serve(listener, table, token_only, std::future::pending()).await, Err(ServerError::Insecure { .. })));
 }
 
@@ -874,7 +874,7 @@ async fn register_actor_gives_each_name_its_own_slot_and_refuses_bad_input_with_
     assert_eq!(slot(register(&mut client, "8e7d6c5b4a39").await.expect("known names still answered")), (1, true, 3));
 
     // Every outcome is counted in /metrics.
-    let samples = parse_exposition(&metrics::render(&h.table, &registry));
+    let samples = parse_exposition(&metrics::render(&h.table, &registry, &Default::default()));
     let value = |series: &str| samples.iter().find(|(s, _)| s == series).map(|(_, v)| *v).unwrap_or_else(|| panic!("{series} missing: {samples:?}"));
     assert_eq!(value(r#"replay_actor_slots{table="transitions"}"#), 3.0);
     assert_eq!(value(r#"replay_actor_registrations_total{table="transitions",outcome="new"}"#), 3.0);
@@ -891,7 +891,7 @@ fn with_token<T>(msg: T, token: &str) -> Request<T> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bearer_token_is_checked_on_every_call() {
-    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()) }, ..ServeOptions::default() };
+    let options = ServeOptions { security: Security { tls: None, token: Some("open-sesame".into()), ..Security::default() }, ..ServeOptions::default() };
     let h = Harness::start_with(table_cfg(100), options).await;
     let mut client = h.client().await;
     let ask = ServerInfoRequest { protocol_version: V1 };
@@ -908,6 +908,88 @@ async fn bearer_token_is_checked_on_every_call() {
     let acks = client.insert(with_token(tokio_stream::iter(vec![batch("actor-z", 1, 0.0, 1)]), "open-sesame")).await;
     let ack = acks.expect("insert").into_inner().message().await.expect("ack").expect("ack");
     assert_eq!(ack.sequence, 1);
+    // The single token of configs without roles keeps every right, sampling included.
+    let (batches, end) = sample_all(&mut client, with_token(sample_request(1), "open-sesame")).await;
+    assert!(end.is_none() && batches.len() == 1, "{end:?}");
+    let update = PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![1], priorities: vec![1.0] };
+    let refused = client.update_priorities(with_token(update, "open-sesame")).await.expect_err("uniform table");
+    assert_eq!(refused.code(), Code::FailedPrecondition, "past the token check: {refused}");
+    h.shutdown().await;
+}
+
+/// One batch on an Insert stream carrying `token`: its ack, or how the call or stream ended.
+async fn insert_one(client: &mut ReplayServiceClient<Channel>, token: Option<&str>, b: TransitionBatch) -> Result<InsertAck, Status> {
+    let stream = tokio_stream::iter(vec![b]);
+    let request = match token {
+        Some(t) => with_token(stream, t),
+        None => Request::new(stream),
+    };
+    let mut acks = within("insert", client.insert(request)).await?.into_inner();
+    within("ack", acks.message()).await?.ok_or_else(|| Status::internal("stream ended without an ack"))
+}
+
+/// Tokens with a role each (issue 17): an actor's token inserts and registers but cannot read
+/// the table; the learner's samples but cannot write; either asks the health service; no or a
+/// wrong token is UNAUTHENTICATED; every refusal is counted in /metrics.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn each_role_token_calls_only_its_methods() {
+    use mapless_net::RoleTokens;
+    let security = Security { role_tokens: RoleTokens { actor: Some("actor-tok".into()), learner: Some("learner-tok".into()) }, ..Security::default() };
+    let refusals = security.refusals.clone();
+    let registry = Arc::new(ActorRegistry::default());
+    let h = Harness::start_with(table_cfg(100), ServeOptions { security, registry: Arc::clone(&registry), ..ServeOptions::default() }).await;
+    let mut client = h.client().await;
+    let denied = |status: Status, method: &str, role: &str| {
+        assert_eq!(status.code(), Code::PermissionDenied, "{status}");
+        let m = status.message();
+        assert!(m.contains(&format!("/mapless.v1.ReplayService/{method}")) && m.contains(&format!("the {role} role")), "{m}");
+    };
+
+    // The actor's token: Insert and RegisterActor.
+    let ack = insert_one(&mut client, Some("actor-tok"), batch("actor-r", 1, 0.0, 3)).await.expect("the actor token inserts");
+    assert_eq!(ack.sequence, 1);
+    let reg = RegisterActorRequest { protocol_version: V1, name: "host-r".into() };
+    assert_eq!(client.register_actor(with_token(reg.clone(), "actor-tok")).await.expect("the actor token registers").into_inner().slot, 0);
+    // ... but not the learner's methods.
+    let (batches, end) = sample_all(&mut client, with_token(sample_request(1), "actor-tok")).await;
+    assert!(batches.is_empty());
+    denied(end.expect("refused"), "Sample", "learner");
+    denied(client.server_info(with_token(ServerInfoRequest { protocol_version: V1 }, "actor-tok")).await.expect_err("refused"), "ServerInfo", "learner");
+    let update = PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![1], priorities: vec![1.0] };
+    denied(client.update_priorities(with_token(update.clone(), "actor-tok")).await.expect_err("refused"), "UpdatePriorities", "learner");
+
+    // The learner's token: Sample, ServerInfo, UpdatePriorities.
+    let (batches, end) = sample_all(&mut client, with_token(sample_request(2), "learner-tok")).await;
+    assert!(end.is_none(), "{end:?}");
+    assert_eq!(batches.len(), 1);
+    assert_eq!(client.server_info(with_token(ServerInfoRequest { protocol_version: V1 }, "learner-tok")).await.expect("info").into_inner().size, 3);
+    let past_auth = client.update_priorities(with_token(update, "learner-tok")).await.expect_err("uniform table");
+    assert_eq!(past_auth.code(), Code::FailedPrecondition, "past the token check: {past_auth}");
+    // ... but not the actor's.
+    denied(insert_one(&mut client, Some("learner-tok"), batch("actor-l", 1, 0.0, 1)).await.expect_err("refused"), "Insert", "actor");
+    denied(client.register_actor(with_token(reg, "learner-tok")).await.expect_err("refused"), "RegisterActor", "actor");
+
+    // No token or an unknown one: UNAUTHENTICATED, whatever the method.
+    assert_eq!(insert_one(&mut client, None, batch("actor-n", 1, 0.0, 1)).await.expect_err("no token").code(), Code::Unauthenticated);
+    assert_eq!(insert_one(&mut client, Some("actor-to"), batch("actor-n", 1, 0.0, 1)).await.expect_err("wrong token").code(), Code::Unauthenticated);
+    let (_, end) = sample_all(&mut client, sample_request(1)).await;
+    assert_eq!(end.map(|s| s.code()), Some(Code::Unauthenticated));
+    let (_, end) = sample_all(&mut client, with_token(sample_request(1), "learner-to")).await;
+    assert_eq!(end.map(|s| s.code()), Some(Code::Unauthenticated));
+    assert_eq!(h.table.info().size, 3, "no refused insert reached the table");
+
+    let samples = parse_exposition(&metrics::render(&h.table, &registry, &refusals));
+    let value = |series: &str| samples.iter().find(|(s, _)| s == series).map(|(_, v)| *v).unwrap_or_else(|| panic!("{series} missing from {samples:?}"));
+    let series = |method: &str, reason: &str| format!(r#"replay_auth_refusals_total{{service="mapless.v1.ReplayService",method="{method}",reason="{reason}"}}"#);
+    assert_eq!(value(&series("Sample", "forbidden")), 1.0);
+    assert_eq!(value(&series("ServerInfo", "forbidden")), 1.0);
+    assert_eq!(value(&series("UpdatePriorities", "forbidden")), 1.0);
+    assert_eq!(value(&series("Insert", "forbidden")), 1.0);
+    assert_eq!(value(&series("RegisterActor", "forbidden")), 1.0);
+    assert_eq!(value(&series("Insert", "missing_token")), 1.0);
+    assert_eq!(value(&series("Insert", "wrong_token")), 1.0);
+    assert_eq!(value(&series("Sample", "missing_token")), 1.0);
+    assert_eq!(value(&series("Sample", "wrong_token")), 1.0);
     h.shutdown().await;
 }
 
@@ -915,7 +997,7 @@ async fn bearer_token_is_checked_on_every_call() {
 async fn tls_with_token_serves_a_client_that_trusts_the_certificate() {
     let cert = rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).expect("self-signed certificate");
     let (cert_pem, key_pem) = (cert.cert.pem(), cert.signing_key.serialize_pem());
-    let security = Security { tls: Some(TlsPem { cert: cert_pem.clone().into_bytes(), key: key_pem.into_bytes() }), token: Some("tok".into()) };
+    let security = Security { tls: Some(TlsPem { cert: cert_pem.clone().into_bytes(), key: key_pem.into_bytes() }), token: Some("tok".into()), ..Security::default() };
     let h = Harness::start_with(table_cfg(100), ServeOptions { security, ..ServeOptions::default() }).await;
     let tls = tonic::transport::ClientTlsConfig::new().ca_certificate(tonic::transport::Certificate::from_pem(cert_pem)).domain_name("localhost");
     let channel = Channel::from_shared(format!("https://localhost:{}", h.addr.port())).expect("uri").tls_config(tls).expect("tls config").connect().await.expect("TLS handshake");

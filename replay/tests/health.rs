@@ -80,10 +80,26 @@ async fn serving_once_started_and_not_serving_from_a_graceful_stop_on() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_needs_the_token_the_replay_needs() {
-    let replay = start(ServeOptions { security: Security { tls: None, token: Some(TOKEN.into()) }, ..ServeOptions::default() }).await;
+    let replay = start(ServeOptions { security: Security { tls: None, token: Some(TOKEN.into()), ..Security::default() }, ..ServeOptions::default() }).await;
     let refused = within("check", check(&endpoint(replay.addr), "")).await.expect_err("no token");
     assert_eq!(refused.code(), Some(Code::Unauthenticated), "{refused}");
     assert_eq!(within("check", check(&endpoint(replay.addr).with_token(TOKEN), "")).await.expect("with the token"), SERVING);
+    replay.stop.send(()).expect("server running");
+    within("server stops", replay.server).await.expect("no panic").expect("clean exit");
+}
+
+/// Health checks are open to any token the replay accepts, whatever its role.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_answers_every_role_token() {
+    let role_tokens = mapless_net::RoleTokens { actor: Some("actor-tok".into()), learner: Some("learner-tok".into()) };
+    let replay = start(ServeOptions { security: Security { role_tokens, ..Security::default() }, ..ServeOptions::default() }).await;
+    for token in ["actor-tok", "learner-tok"] {
+        let e = endpoint(replay.addr).with_token(token);
+        assert_eq!(within("check", check(&e, "")).await.expect(token), SERVING);
+        assert_eq!(within("check", check(&e, "mapless.v1.ReplayService")).await.expect(token), SERVING);
+    }
+    let refused = within("check", check(&endpoint(replay.addr).with_token("nobody"), "")).await.expect_err("unknown token");
+    assert_eq!(refused.code(), Some(Code::Unauthenticated), "{refused}");
     replay.stop.send(()).expect("server running");
     within("server stops", replay.server).await.expect("no panic").expect("clean exit");
 }
@@ -110,7 +126,7 @@ async fn the_probe_exits_0_only_when_serving() {
     let token_file = dir.path().join("token");
     std::fs::write(&token_file, format!("{TOKEN}\n")).expect("write token");
     let token_file = token_file.to_str().expect("utf-8 path").to_owned();
-    let replay = start(ServeOptions { security: Security { tls: None, token: Some(TOKEN.into()) }, ..ServeOptions::default() }).await;
+    let replay = start(ServeOptions { security: Security { tls: None, token: Some(TOKEN.into()), ..Security::default() }, ..ServeOptions::default() }).await;
     let addr = replay.addr.to_string();
 
     let serving = tokio::task::spawn_blocking({

@@ -106,6 +106,7 @@ impl Cluster {
             threads: cfg.threads.learner,
             tls: None,
             auth_token_file: None,
+            auth_token_files: Default::default(),
             replay_security: Default::default(),
             metrics_listen: Some(any_port),
         };

@@ -495,7 +495,8 @@ mod tests {
     use mapless_replay::server::ServerConfig;
 
     /// deploy/config/ (the compose cluster) is written by hand; it must keep parsing, pass each
-    /// service's checks (TLS and token beyond loopback) and run the env1-sac preset's settings.
+    /// service's checks (TLS and token beyond loopback), give each role its own token (an
+    /// actor's cannot read the replay) and run the env1-sac preset's settings.
     #[test]
     fn the_compose_configs_parse_validate_and_match_the_env1_sac_preset() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/config");
@@ -508,14 +509,19 @@ mod tests {
 
         let replay = ServerConfig::from_yaml_file(&dir.join("replay.yaml")).unwrap();
         replay.validate().expect("replay.yaml passes the service's checks");
-        assert!(!replay.listen.ip().is_loopback() && replay.tls.is_some() && replay.auth_token_file.is_some());
+        assert!(!replay.listen.ip().is_loopback() && replay.tls.is_some());
+        let roles = &replay.auth_token_files;
+        assert!(roles.actor.is_some() && roles.learner.is_some() && roles.actor != roles.learner, "a token per role");
+        assert!(replay.auth_token_file.is_none(), "no full-rights token in the cluster");
         assert_eq!(yaml(&replay.table), yaml(&preset.replay), "replay.yaml: the preset's table and rate limiter");
 
         let learner: LearnerServiceConfig = serde_yaml::from_str(&read("learner.yaml")).unwrap();
         assert_eq!(yaml(&learner.learner), yaml(&LearnerConfig { seed: preset.seed, ..preset.learner.clone() }), "learner.yaml: the preset's learner");
         assert_eq!(yaml(&learner.driver), yaml(&preset.driver));
-        assert!(learner.replay.starts_with("https://") && learner.replay_security.tls_ca_file.is_some() && learner.replay_security.token_file.is_some());
-        assert!(learner.tls.is_some() && learner.auth_token_file.is_some(), "weights beyond loopback need TLS and a token");
+        assert!(learner.replay.starts_with("https://") && learner.replay_security.tls_ca_file.is_some());
+        assert_eq!(learner.replay_security.token_file, roles.learner, "the learner samples with the learner's token");
+        assert!(learner.tls.is_some() && learner.auth_token_file.is_none(), "weights beyond loopback need TLS and a token");
+        assert_eq!(learner.auth_token_files.actor, roles.actor, "actors subscribe with their token");
 
         let actor: ActorConfig = serde_yaml::from_str(&read("actor.yaml")).unwrap();
         actor.validate().expect("actor.yaml passes the actor's checks");
@@ -523,7 +529,25 @@ mod tests {
         assert_eq!(actor.map, preset.map);
         assert_eq!(yaml(&actor.exploration.noise), yaml(&preset.noise()));
         assert!(matches!(&actor.replay, ReplayTarget::Grpc { uri } if uri.starts_with("https://")));
-        assert!(actor.weights.starts_with("https://") && actor.security.tls_ca_file.is_some() && actor.security.token_file.is_some());
+        assert!(actor.weights.starts_with("https://") && actor.security.tls_ca_file.is_some());
+        assert_eq!(actor.security.token_file, roles.actor, "actors hold the actor's token only");
+        // compose.yaml mounts each container the token files its config names, and an actor no other.
+        let compose: serde_yaml::Value = serde_yaml::from_str(&fs::read_to_string(dir.join("../compose.yaml")).expect("compose.yaml")).expect("compose.yaml parses");
+        let mounts = |service: &str| -> Vec<String> {
+            compose["services"][service]["volumes"]
+                .as_sequence()
+                .unwrap_or_else(|| panic!("{service} volumes"))
+                .iter()
+                .filter_map(|v| v.as_str())
+                .map(|v| v.split(':').nth(1).unwrap_or_default().to_owned())
+                .collect()
+        };
+        let path = |p: &Option<PathBuf>| p.as_ref().expect("set").display().to_string();
+        for service in ["replay", "learner"] {
+            assert!(mounts(service).contains(&path(&roles.actor)) && mounts(service).contains(&path(&roles.learner)), "{service} checks both tokens");
+        }
+        let actor_mounts = mounts("actor");
+        assert!(actor_mounts.contains(&path(&roles.actor)) && !actor_mounts.contains(&path(&roles.learner)), "{actor_mounts:?}");
     }
 
     #[test]

@@ -136,7 +136,7 @@ struct Gauges {
 }
 
 impl Gauges {
-    fn render(&self) -> String {
+    fn render(&self, refusals: &mapless_net::AuthRefusals) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
         let mut x = metrics::Exposition::new();
         x.counter("mapless_learner_updates", "Gradient updates done.", g(&self.updates))
@@ -144,6 +144,7 @@ impl Gauges {
             .gauge("mapless_learner_weights_version", "Newest published weights version.", g(&self.weights_version))
             .counter("mapless_learner_minibatches", "Minibatches received from the replay.", g(&self.batches))
             .counter("mapless_learner_replay_reconnects", "Replay sample streams reopened.", g(&self.reconnects));
+        refusals.write(&mut x, "mapless_learner_auth_refusals");
         x.text()
     }
 }
@@ -233,10 +234,11 @@ fn run(config_path: &Path) -> Result<()> {
     let listener = rt.block_on(tokio::net::TcpListener::bind(cfg.weights_listen)).with_context(|| format!("binding the weights service on {}", cfg.weights_listen))?;
     let addr = listener.local_addr()?;
     let mut shutdown = stop_rx.clone();
-    let security = Security::read(cfg.tls.as_ref(), cfg.auth_token_file.as_deref())?;
+    let security = Security::read(cfg.tls.as_ref(), cfg.auth_token_file.as_deref(), &cfg.auth_token_files)?;
     if !security.allows(&addr) {
-        bail!("weights_listen {addr} is not loopback: set tls (cert, key) and auth_token_file, or listen on 127.0.0.1");
+        bail!("weights_listen {addr} is not loopback: set tls (cert, key) and a token (auth_token_files: {{actor: FILE}}, or auth_token_file), or listen on 127.0.0.1");
     }
+    let refusals = security.refusals.clone();
     let options = ServeOptions { security, health: health.clone(), ..ServeOptions::default() };
     let server = rt.spawn(serve(listener, publisher, options, async move {
         let _ = shutdown.wait_for(|s| *s).await;
@@ -244,7 +246,7 @@ fn run(config_path: &Path) -> Result<()> {
     let gauges = Arc::new(Gauges::default());
     if let Some(m) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render()), health.clone(), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
+        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render(&refusals)), health.clone(), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
         println!("metrics on http://{bound}/metrics");
     }
     println!("weights on {addr}");

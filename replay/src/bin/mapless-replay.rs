@@ -104,7 +104,8 @@ struct Cli {
     /// TLS private key (PEM).
     #[arg(long, requires = "tls_cert")]
     tls_key: Option<PathBuf>,
-    /// File holding the bearer token clients must send as `authorization: Bearer <token>`.
+    /// File holding a full-rights bearer token (every method; `auth_token_file`). Tokens per
+    /// role (actor, learner) are set in the config file's `auth_token_files`.
     #[arg(long, value_name = "FILE")]
     auth_token_file: Option<PathBuf>,
     /// Log JSON objects instead of text.
@@ -267,9 +268,9 @@ async fn run(cfg: ServerConfig, mut options: mapless_replay::server::ServeOption
             let maddr = l.local_addr()?;
             info!(addr = %maddr, "metrics serving");
             println!("metrics on http://{maddr}/metrics");
-            let (table, registry, health) = (Arc::clone(&table), Arc::clone(&registry), options.health.clone());
+            let (table, registry, refusals, health) = (Arc::clone(&table), Arc::clone(&registry), options.security.refusals.clone(), options.health.clone());
             let rx = stop_rx.clone();
-            Some(tokio::spawn(async move { metrics::serve(l, table, registry, health, stopped(rx)).await }.in_current_span()))
+            Some(tokio::spawn(async move { metrics::serve(l, table, registry, refusals, health, stopped(rx)).await }.in_current_span()))
         }
         None => None,
     };
