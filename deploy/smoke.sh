@@ -9,6 +9,8 @@
 #   1. the learner samples and updates, and publishes new weights versions;
 #   2. N distinct actor ids, on slots 0..N-1, write rows into the replay (its /metrics), and
 #      every replica acts with a published policy (version ≥ 2) with its batches acknowledged;
+#      the replay's ServerInfo (`mapless-replay info`) lists them for the learner's token and
+#      refuses a call without a token (UNAUTHENTICATED) and with the actor's (PERMISSION_DENIED);
 #   3. an actor process killed with SIGKILL is restarted by Docker, gets its slot back, and its
 #      new incarnation (a new actor id on the same slot) writes;
 #   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write;
@@ -120,6 +122,20 @@ for cid in $(dc ps -q actor); do
 done
 [ "$(registered)" = "$actors" ] || { echo "smoke: the replay holds $(registered) slots, expected $actors" >&2; exit 1; }
 show_actors
+
+# Tokens and roles: the replay's ServerInfo, asked inside its container over TLS, answers the
+# learner's token with every actor id that wrote; no token is UNAUTHENTICATED and the actor's
+# token PERMISSION_DENIED (a leaked actor token cannot read the replay).
+replay_info() { docker exec "$(dc ps -q replay)" /usr/local/bin/mapless-replay info 127.0.0.1:50051 --tls-ca-file /secrets/ca.pem "$@" 2>&1; }
+info=$(replay_info --token-file /secrets/learner-token) || { echo "smoke: server info with the learner's token failed: $info" >&2; exit 1; }
+listed=$(grep -c '^actor actor-' <<<"$info" || true)
+[ "$listed" -ge "$actors" ] || { echo "smoke: server info lists $listed actor ids, expected $actors: $info" >&2; exit 1; }
+echo "smoke: ok: server info (learner's token) lists $listed actor ids: $(head -1 <<<"$info")"
+if out=$(replay_info); then echo "smoke: server info without a token was answered: $out" >&2; exit 1; fi
+grep -qi "unauthenticated" <<<"$out" || { echo "smoke: server info without a token failed, but not as UNAUTHENTICATED: $out" >&2; exit 1; }
+if out=$(replay_info --token-file /secrets/actor-token); then echo "smoke: server info with the actor's token was answered: $out" >&2; exit 1; fi
+grep -qi "permission" <<<"$out" || { echo "smoke: server info with the actor's token failed, but not as PERMISSION_DENIED: $out" >&2; exit 1; }
+echo "smoke: ok: without a token and with the actor's token, server info is refused ($(tail -1 <<<"$out" | cut -c1-160))"
 
 cid=$(dc ps -q actor | head -1)
 slot=$(slot_of "$cid"); old_id=$(id_of "$cid")

@@ -256,3 +256,64 @@ mod tests {
         assert_eq!(status_name(42), "an unknown status");
     }
 }
+
+/// Flags of `mapless-replay info`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct InfoArgs {
+    /// The replay's gRPC address, `host:port` or a URI [default: its default listen address].
+    pub addr: Option<String>,
+    /// CA certificate (PEM) to trust: the replay speaks TLS.
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca_file: Option<PathBuf>,
+    /// Name to check the replay's certificate against [default: the address's host].
+    #[arg(long)]
+    pub tls_domain: Option<String>,
+    /// File holding a bearer token the replay accepts (ServerInfo needs the learner role or
+    /// the full-rights token).
+    #[arg(long, value_name = "FILE")]
+    pub token_file: Option<PathBuf>,
+    /// Longest the whole call may take.
+    #[arg(long, default_value_t = 5_000)]
+    pub timeout_ms: u64,
+}
+
+/// `mapless-replay info`: the replay's ServerInfo (its table, and what each actor has stored),
+/// one line per actor; exit 1 with the status when unreachable or refused.
+pub fn replay_info(args: &InfoArgs, default_addr: &str) -> ExitCode {
+    use mapless_proto::MAX_MESSAGE_BYTES;
+    use mapless_proto::v1::replay_service_client::ReplayServiceClient;
+    use mapless_proto::v1::{ProtocolVersion, ServerInfoRequest};
+    let addr = args.addr.as_deref().unwrap_or(default_addr);
+    let outcome = block_on_with_timeout(args.timeout_ms, addr, async {
+        let security = ClientSecurity { tls_ca_file: args.tls_ca_file.clone(), tls_domain: args.tls_domain.clone(), token_file: args.token_file.clone() };
+        let endpoint = security.endpoint(addr).map_err(|e| e.to_string())?.with_connect_timeout(Duration::from_millis(args.timeout_ms));
+        let channel = endpoint.connect("replay").await.map_err(|e| e.to_string())?;
+        let mut client = ReplayServiceClient::new(channel).max_decoding_message_size(MAX_MESSAGE_BYTES);
+        let request = endpoint.request("replay", ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32 }).map_err(|e| e.to_string())?;
+        let info = client.server_info(request).await.map_err(|s| endpoint.status_error("replay", &s).to_string())?.into_inner();
+        let mut out = format!(
+            "table {}: {} rows of {} (obs {}, act {}), {} inserted since it was created; {} actors",
+            info.table,
+            info.size,
+            info.capacity,
+            info.obs_dim,
+            info.act_dim,
+            info.inserts_total,
+            info.actors.len()
+        );
+        for a in &info.actors {
+            out.push_str(&format!("\nactor {} rows={} batches={} duplicate_batches={} last_sequence={}", a.actor_id, a.rows, a.batches, a.duplicate_batches, a.last_sequence));
+        }
+        Ok(out)
+    });
+    match outcome {
+        Ok(text) => {
+            println!("{text}");
+            ExitCode::SUCCESS
+        }
+        Err(why) => {
+            eprintln!("mapless-replay info: {why}");
+            ExitCode::FAILURE
+        }
+    }
+}

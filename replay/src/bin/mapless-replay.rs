@@ -24,7 +24,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use mapless_net::TlsFiles;
-use mapless_net::health::{GrpcProbeArgs, grpc_probe};
+use mapless_net::health::{GrpcProbeArgs, InfoArgs, grpc_probe, replay_info};
 use mapless_replay::server::{DEFAULT_LISTEN, ServerConfig, serve};
 use mapless_replay::shm::ShmIngest;
 use mapless_replay::{DurableTable, SamplerConfig, metrics};
@@ -121,6 +121,10 @@ enum Cmd {
     /// Asks a replay whether it is SERVING (grpc.health.v1.Health/Check): exit 0 if so, else 1
     /// with the reason. For a container's HEALTHCHECK.
     Health(GrpcProbeArgs),
+    /// Asks a replay for its ServerInfo: the table's size and capacity, and the rows, batches
+    /// and duplicates each actor id has stored. Needs the learner role's token (or the
+    /// full-rights one) where the replay checks tokens.
+    Info(InfoArgs),
 }
 
 impl Cli {
@@ -187,8 +191,10 @@ fn init_logging(json: bool) {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    if let Some(Cmd::Health(args)) = &cli.cmd {
-        return grpc_probe("mapless-replay", args, DEFAULT_LISTEN);
+    match &cli.cmd {
+        Some(Cmd::Health(args)) => return grpc_probe("mapless-replay", args, DEFAULT_LISTEN),
+        Some(Cmd::Info(args)) => return replay_info(args, DEFAULT_LISTEN),
+        None => {}
     }
     let runtime = match tokio::runtime::Builder::new_multi_thread().enable_all().build() {
         Ok(r) => r,
