@@ -64,7 +64,8 @@ pub struct ServerConfig {
     /// gRPC address. Loopback by default; any other address needs `tls` and a token
     /// (`auth_token_files` or `auth_token_file`).
     pub listen: SocketAddr,
-    /// Prometheus text exposition at `http://<addr>/metrics`; none disables it.
+    /// Prometheus text exposition at `http://<addr>/metrics`; none disables it. Loopback only
+    /// (it has no TLS or token); any other address is refused.
     pub metrics_listen: Option<SocketAddr>,
     /// Server certificate chain and private key (PEM files).
     pub tls: Option<TlsFiles>,
@@ -152,6 +153,11 @@ pub enum ServerError {
          write to and read the replay table. For a local run use 127.0.0.1."
     )]
     Insecure { addr: SocketAddr },
+    #[error(
+        "refusing to serve /metrics on {addr}: it has neither TLS nor a token, and anyone who can reach it reads every actor id \
+         and the table's state. Bind loopback (metrics_listen: 127.0.0.1:9464, the default), or `--no-metrics`."
+    )]
+    InsecureMetrics { addr: SocketAddr },
     #[error(transparent)]
     Replay(#[from] ReplayError),
     #[error(transparent)]
@@ -179,6 +185,12 @@ impl ServerConfig {
         }
         if !self.listen.ip().is_loopback() && (self.tls.is_none() || (self.auth_token_file.is_none() && self.auth_token_files.is_empty())) {
             return Err(ServerError::Insecure { addr: self.listen });
+        }
+        // As the actors' and the learner's: /metrics stays on the host it describes.
+        if let Some(m) = self.metrics_listen
+            && !m.ip().is_loopback()
+        {
+            return Err(ServerError::InsecureMetrics { addr: m });
         }
         Ok(())
     }
@@ -295,6 +307,16 @@ mod tests {
         c.auth_token_file = None;
         c.auth_token_files.actor = Some("a".into());
         c.validate().expect("a role token is a token");
+    }
+
+    #[test]
+    fn metrics_stay_on_loopback() {
+        let c = ServerConfig { metrics_listen: Some("0.0.0.0:9464".parse().unwrap()), ..ServerConfig::default() };
+        let err = c.validate().unwrap_err();
+        assert!(matches!(err, ServerError::InsecureMetrics { .. }), "{err}");
+        assert!(err.to_string().contains("127.0.0.1:9464"), "{err}");
+        ServerConfig { metrics_listen: None, ..ServerConfig::default() }.validate().unwrap();
+        ServerConfig { metrics_listen: Some("[::1]:0".parse().unwrap()), ..ServerConfig::default() }.validate().unwrap();
     }
 
     #[test]
