@@ -58,6 +58,8 @@ finish() {
     exit $rc
 }
 trap finish EXIT
+# Under `set -e` a failing command ends the drill without a word: name it.
+trap 'echo "smoke: failed at line $LINENO: $BASH_COMMAND (exit $?)" >&2' ERR
 dc down -v >/dev/null 2>&1 || true
 started=$SECONDS
 dc up -d --scale actor="$actors"
@@ -137,7 +139,7 @@ if out=$(replay_info --token-file /secrets/actor-token); then echo "smoke: serve
 grep -qi "permission" <<<"$out" || { echo "smoke: server info with the actor's token failed, but not as PERMISSION_DENIED: $out" >&2; exit 1; }
 echo "smoke: ok: without a token and with the actor's token, server info is refused ($(tail -1 <<<"$out" | cut -c1-160))"
 
-cid=$(dc ps -q actor | head -1)
+cid=$(dc ps -q actor | sed -n 1p)
 slot=$(slot_of "$cid"); old_id=$(id_of "$cid")
 pid=$(docker inspect -f '{{.State.Pid}}' "$cid")
 echo "smoke: kill -9 replica ${cid:0:12} (slot $slot, $old_id; pid $pid on this host)"
@@ -190,7 +192,7 @@ done
 echo "smoke: ok: the replay's contents came back from its volume (${size_before} rows before, ${size_after} after)"
 wait_for 120 "the actors reconnected and write again" grown_since
 
-cut=$(dc ps -q actor | head -1)
+cut=$(dc ps -q actor | sed -n 1p)
 net=$(docker inspect -f '{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}' "$cut" | awk '{ print $1 }')
 remember_rows
 echo "smoke: cut replica ${cut:0:12} ($(id_of "$cut")) off network $net for 15 s"
