@@ -173,24 +173,21 @@ echo "smoke: learner at $(learner_field updates) updates, weights v$(learner_fie
 
 # Rows in the replay's table (the exposition writes floats).
 table_size() { replay_metrics | sed -n 's/^replay_size{.*} \([0-9.e+]*\)$/\1/p' | awk '{ printf "%d", $1 }'; }
-# Every id in `before` has more rows than recorded there; then records the new counts.
-grown_since() { both_grow; }
+# Records every id in `before`'s rows now (both_grow then asks for more).
 remember_rows() { local id; for id in "${!before[@]}"; do before[$id]=$(rows_of "$id"); done; }
 replay_healthy() { [ "$(docker inspect -f '{{.State.Health.Status}}' "$(dc ps -q replay)")" = healthy ]; }
 
 size_before=$(table_size); remember_rows
-declare -A kept
-for id in "${!before[@]}"; do kept[$id]=${before[$id]}; done
 echo "smoke: restart the replay container (${size_before} rows stored)"
 dc restart -t 60 replay >/dev/null 2>&1
 wait_for 180 "the replay is healthy again" replay_healthy
 size_after=$(table_size)
 [ "${size_after:-0}" -ge "$size_before" ] || { echo "smoke: the replay came back with ${size_after:-no} rows, ${size_before} before" >&2; exit 1; }
-for id in "${!kept[@]}"; do
-    awk -v a="$(rows_of "$id")" -v b="${kept[$id]}" 'BEGIN { exit !(a >= b) }' || { echo "smoke: $id had ${kept[$id]} rows before the restart, $(rows_of "$id") after" >&2; exit 1; }
+for id in "${!before[@]}"; do
+    awk -v a="$(rows_of "$id")" -v b="${before[$id]}" 'BEGIN { exit !(a >= b) }' || { echo "smoke: $id had ${before[$id]} rows before the restart, $(rows_of "$id") after" >&2; exit 1; }
 done
 echo "smoke: ok: the replay's contents came back from its volume (${size_before} rows before, ${size_after} after)"
-wait_for 120 "the actors reconnected and write again" grown_since
+wait_for 120 "the actors reconnected and write again" both_grow
 
 cut=$(dc ps -q actor | sed -n 1p)
 net=$(docker inspect -f '{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}' "$cut" | awk '{ print $1 }')
@@ -204,7 +201,7 @@ docker network connect "$net" "$cut"
 # unacknowledged batches resent; give that its 30 s before judging.
 sleep 30
 remember_rows
-wait_for 120 "the cut-off replica is back and writes again" grown_since
+wait_for 120 "the cut-off replica is back and writes again" both_grow
 
 # Exactly-once: each actor, stopped, prints a report of the rows it handed to its sink and
 # whether all were acknowledged; the replay must hold exactly that many rows under its id, after

@@ -280,15 +280,12 @@ pub struct InfoArgs {
 /// `mapless-replay info`: the replay's ServerInfo (its table, and what each actor has stored),
 /// one line per actor; exit 1 with the status when unreachable or refused.
 pub fn replay_info(args: &InfoArgs, default_addr: &str) -> ExitCode {
-    use mapless_proto::MAX_MESSAGE_BYTES;
-    use mapless_proto::v1::replay_service_client::ReplayServiceClient;
     use mapless_proto::v1::{ProtocolVersion, ServerInfoRequest};
     let addr = args.addr.as_deref().unwrap_or(default_addr);
     let outcome = block_on_with_timeout(args.timeout_ms, addr, async {
         let security = ClientSecurity { tls_ca_file: args.tls_ca_file.clone(), tls_domain: args.tls_domain.clone(), token_file: args.token_file.clone() };
         let endpoint = security.endpoint(addr).map_err(|e| e.to_string())?.with_connect_timeout(Duration::from_millis(args.timeout_ms));
-        let channel = endpoint.connect("replay").await.map_err(|e| e.to_string())?;
-        let mut client = ReplayServiceClient::new(channel).max_decoding_message_size(MAX_MESSAGE_BYTES);
+        let mut client = crate::sample::connect_client(&endpoint).await.map_err(|e| e.to_string())?;
         let request = endpoint.request("replay", ServerInfoRequest { protocol_version: ProtocolVersion::V1 as i32 }).map_err(|e| e.to_string())?;
         let info = client.server_info(request).await.map_err(|s| endpoint.status_error("replay", &s).to_string())?.into_inner();
         let mut out = format!(

@@ -339,7 +339,7 @@ struct OpenStream {
     act_dim: usize,
 }
 
-async fn connect_client(endpoint: &GrpcEndpoint) -> Result<ReplayServiceClient<Channel>, NetError> {
+pub(crate) async fn connect_client(endpoint: &GrpcEndpoint) -> Result<ReplayServiceClient<Channel>, NetError> {
     let channel = endpoint.connect("replay").await?;
     Ok(ReplayServiceClient::new(channel).max_decoding_message_size(MAX_MESSAGE_BYTES).max_encoding_message_size(MAX_MESSAGE_BYTES))
 }
