@@ -9,7 +9,8 @@
 # single files: actors get ca.pem and actor-token (insert, register, subscribe: it cannot read
 # the replay), the replay and the learner also learner-token, server.pem and server.key (each
 # service checks both tokens); the CA's key (ca.key) never leaves the host. A `token` left by
-# an older certs.sh is no longer used.
+# an older certs.sh is no longer used. The containers run as uid/gid 65532, so the files they
+# mount belong to group 65532 (mode 640); changing a file's group needs root.
 set -euo pipefail
 umask 077
 dir="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)/secrets"
@@ -33,6 +34,14 @@ fi
 for t in actor-token learner-token; do
     [ -s "$t" ] || { openssl rand -hex 32 | tr -d '\n' > "$t"; }
 done
-chmod 600 ca.key server.key actor-token learner-token
+chmod 600 ca.key
 chmod 644 ca.pem server.pem
+# The containers run as uid/gid 65532 (deploy/images.sh), not root: the files they mount are
+# readable by that group and by nobody else; ca.key stays the host owner's alone.
+readonly run_gid=65532
+if ! chgrp "$run_gid" server.key actor-token learner-token 2>/dev/null; then
+    echo "certs.sh: cannot give group $run_gid (the containers' user) server.key and the tokens: run as root, or 'sudo chgrp $run_gid $dir/{server.key,actor-token,learner-token}'" >&2
+    exit 1
+fi
+chmod 640 server.key actor-token learner-token
 echo "certs.sh: $dir: ca.pem, server.pem/server.key ($(openssl x509 -in server.pem -noout -ext subjectAltName | tail -1 | tr -d ' ')), actor-token, learner-token" >&2

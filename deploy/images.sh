@@ -5,9 +5,12 @@
 #   mapless-actor:TAG    an actor process         (mapless-actor;  glibc only, ~10 MB)
 #   mapless-learner:TAG  the learner              (mapless-learner; libtorch, several GB)
 #
-# Each image is `FROM scratch`: the release binary plus exactly the shared libraries `ldd` finds
-# for it (system ones at their paths, libtorch and its CUDA libraries in /opt/mapless/lib), so
-# nothing is pulled from a registry and the actor and replay images carry no libtorch. The
+# Each runs as the user `nonroot` (uid and gid 65532), never as root.
+#
+# Each image is one layer made by `docker import` (as `FROM scratch` + `COPY` would make it): the
+# release binary plus exactly the shared libraries `ldd` finds for it (system ones at their paths,
+# libtorch and its CUDA libraries in /opt/mapless/lib), so nothing is pulled from a registry and
+# the actor and replay images carry no libtorch. The
 # learner image runs on CPU: libraries that CUDA loads at run time (cuDNN's engines, NVRTC's
 # builtins) are not in the ldd closure, so `device: cuda` needs an image built from a CUDA base.
 #
@@ -31,12 +34,49 @@ if [ -z "${LIBTORCH:-}" ]; then bash scripts/setup-torch.sh; fi
 echo "images.sh: building the binaries ($profile)" >&2
 cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay --bins
 
-# stage NAME BINARY: a root file system with BINARY and its libraries, and a Dockerfile.
+# The user every image runs as (not root): the uid and gid distroless images call `nonroot`.
+# It owns /data and /train (the replay's and the learner's volumes, which take their owner from
+# the image when Docker creates them); deploy/certs.sh gives its gid read access to the secrets.
+readonly run_uid=65532
+
+# rootfs DIR: DIR as one tar on stdout for `docker import`. Links are followed (the libraries are
+# links to their files here), everything is root's and read-only to the user, but for the
+# writable folders, which are the user's.
+rootfs() {
+    python3 - "$1" "$run_uid" <<'PY'
+import os, sys, tarfile
+root, uid = sys.argv[1], int(sys.argv[2])
+owned = {"data", "train"}
+with tarfile.open(fileobj=sys.stdout.buffer, mode="w|", format=tarfile.PAX_FORMAT, dereference=True, copybufsize=1 << 20) as tar:
+    for top, dirs, files in os.walk(root):
+        dirs.sort()
+        for name in sorted(dirs) + sorted(files):
+            path = os.path.join(top, name)
+            arc = os.path.relpath(path, root)
+            info = tar.gettarinfo(path, arcname=arc)
+            mine = arc in owned
+            info.uid = info.gid = uid if mine else 0
+            info.uname = info.gname = "nonroot" if mine else "root"
+            if info.isfile():
+                with open(path, "rb") as f:
+                    tar.addfile(info, f)
+            else:
+                tar.addfile(info)
+PY
+}
+
+# stage NAME BINARY: a root file system with BINARY (a stripped copy) and symbolic links to its
+# libraries, streamed as one dereferenced tar into `docker import`. Neither a copy of libtorch nor
+# a build context is written: the learner's 2.7 GB land on disk once, as the image's one layer
+# (a build context cost three times that, and a CI machine once ran out of disk on it).
 stage() {
     local name="$1" bin="$2" dir="target/images/$1" lib dest
     rm -rf "$dir"
-    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/tmp" "$dir/root/data" "$dir/root/train"
+    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/etc" "$dir/root/tmp" "$dir/root/data" "$dir/root/train"
     chmod 1777 "$dir/root/tmp"
+    chmod 0750 "$dir/root/data" "$dir/root/train"
+    printf 'root:x:0:0:root:/root:/sbin/nologin\nnonroot:x:%s:%s:nonroot:/data:/sbin/nologin\n' "$run_uid" "$run_uid" > "$dir/root/etc/passwd"
+    printf 'root:x:0:\nnonroot:x:%s:\n' "$run_uid" > "$dir/root/etc/group"
     cp "$out_dir/$bin" "$dir/root/usr/local/bin/"
     # Symbols stay (panics still name their functions); the debug sections (line tables in
     # release, full DWARF in dev) do not: 50 MB of a 64 MB actor image.
@@ -48,23 +88,22 @@ stage() {
             *) dest="$dir/root/opt/mapless/lib" ;;
         esac
         mkdir -p "$dest"
-        cp -L "$lib" "$dest/"
+        ln -sfn "$(readlink -f "$lib")" "$dest/$(basename "$lib")"
     done
     if ldd "$out_dir/$bin" | grep -q "not found"; then
         echo "images.sh: $bin has unresolved libraries:" >&2
         ldd "$out_dir/$bin" | grep "not found" >&2
         exit 1
     fi
-    cat > "$dir/Dockerfile" <<DOCKERFILE
-FROM scratch
-COPY root/ /
-ENV LD_LIBRARY_PATH=/opt/mapless/lib
-LABEL org.opencontainers.image.title="mapless-$name" org.opencontainers.image.source="mapless"
-HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 CMD ["/usr/local/bin/$bin", "health"]
-ENTRYPOINT ["/usr/local/bin/$bin"]
-DOCKERFILE
-    echo "images.sh: mapless-$name:$tag ($(du -sh "$dir/root" | cut -f1))" >&2
-    docker build -q -t "mapless-$name:$tag" "$dir" >/dev/null
+    echo "images.sh: mapless-$name:$tag ($(du -shL "$dir/root" | cut -f1))" >&2
+    rootfs "$dir/root" |
+        docker import \
+            --change 'ENV LD_LIBRARY_PATH=/opt/mapless/lib' \
+            --change "USER $run_uid:$run_uid" \
+            --change "LABEL org.opencontainers.image.title=\"mapless-$name\" org.opencontainers.image.source=\"mapless\"" \
+            --change "HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 CMD [\"/usr/local/bin/$bin\", \"health\"]" \
+            --change "ENTRYPOINT [\"/usr/local/bin/$bin\"]" \
+            - "mapless-$name:$tag" >/dev/null
 }
 
 stage replay mapless-replay

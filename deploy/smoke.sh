@@ -5,7 +5,8 @@
 # containers) and checks, printing each step and what it measured:
 #
 #   0. `up` starts the learner only once the replay is healthy and the actors once both are
-#      (depends_on: service_healthy), and every container's HEALTHCHECK reports healthy;
+#      (depends_on: service_healthy), every container's HEALTHCHECK reports healthy, and no
+#      container's process runs as root;
 #   1. the learner samples and updates, and publishes new weights versions;
 #   2. N distinct actor ids, on slots 0..N-1, write rows into the replay (its /metrics), and
 #      every replica acts with a published policy (version ≥ 2) with its batches acknowledged;
@@ -115,6 +116,12 @@ all_healthy() {
     for c in $(dc ps -q); do [ "$(docker inspect -f '{{.State.Health.Status}}' "$c")" = healthy ] || return 1; done
 }
 wait_for 120 "every container reports healthy" all_healthy
+# No container runs its process as root: each runs as the images' user, 65532 (deploy/images.sh).
+for c in $(dc ps -q); do
+    uid=$(ps -o uid= -p "$(docker inspect -f '{{.State.Pid}}' "$c")" | tr -d ' ')
+    [ "$uid" = 65532 ] || { echo "smoke: container ${c:0:12} ($(docker inspect -f '{{.Name}}' "$c")) runs as uid $uid, not 65532" >&2; exit 1; }
+done
+echo "smoke: ok: every container's process runs as uid 65532, not root"
 wait_for 300 "learner updates > 100" learner_updates
 echo "smoke: $(( SECONDS - started ))s from up to > 100 learner updates"
 wait_for 120 "learner published weights version ≥ 3" learner_versions
