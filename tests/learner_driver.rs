@@ -113,3 +113,49 @@ fn pure_rust_actor_matches_the_tch_policy_on_published_weights() {
         assert!(theirs.iter().any(|a| a.abs() > 1e-3), "{kind:?}: actions are not all zero");
     }
 }
+
+/// The names in `dir`, sorted.
+fn names(dir: &std::path::Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+    v.sort();
+    v
+}
+
+/// The learner's checkpoints on a full disk, for real (a 1 MiB tmpfs this test mounts and
+/// fills): a periodic checkpoint that cannot be written is counted and training goes on; the
+/// previous checkpoint stays whole and named by LATEST, and no temporary directory is left
+/// holding space; once space returns, the next checkpoint is written without a restart.
+#[test]
+fn a_full_disk_costs_only_the_checkpoints_it_refuses_and_the_next_one_after_space_returns_is_written() {
+    let disk = common::tmpfs::Tmpfs::mount("1m");
+    let root = disk.path().join("checkpoints");
+    let cfg = DriverConfig { publish_every: 10, checkpoint_every: 5, checkpoint_keep: 2, ..DriverConfig::default() };
+    let agent = Agent::new(&config(AlgorithmKind::Sac), OBS, ACT).unwrap();
+    let source = Box::new(InProcess::new(table(), 16).unwrap());
+    let mut driver = Driver::new(agent, source, WeightsPublisher::new(), cfg, 0).unwrap().with_checkpoints(&root);
+    for _ in 0..10 {
+        driver.step().unwrap();
+    }
+    assert_eq!(names(&root), ["LATEST", "ckpt-000000000005", "ckpt-000000000010"]);
+
+    let filler = disk.path().join("filler");
+    assert!(common::tmpfs::fill(&filler) > 0, "the tmpfs had room for the filler");
+    for _ in 0..10 {
+        driver.step().expect("a full disk does not stop training");
+    }
+    assert_eq!((driver.agent().updates(), driver.checkpoint_failures()), (20, 2), "the saves at 15 and 20 were refused, and counted");
+    let e = driver.checkpoint().expect_err("an explicit checkpoint on a full disk is an error");
+    assert!(e.to_string().contains("No space left on device"), "{e}");
+    assert_eq!(names(&root), ["LATEST", "ckpt-000000000005", "ckpt-000000000010"], "nothing half-written is left behind");
+    let (kept, _) = mapless_learner::checkpoint::load(&root, None).expect("the newest checkpoint is still whole");
+    assert_eq!(kept.updates(), 10);
+
+    std::fs::remove_file(&filler).unwrap();
+    for _ in 0..5 {
+        driver.step().unwrap();
+    }
+    assert_eq!(driver.checkpoint_failures(), 2);
+    assert_eq!(names(&root), ["LATEST", "ckpt-000000000010", "ckpt-000000000025"]);
+    let (newest, _) = mapless_learner::checkpoint::load(&root, None).unwrap();
+    assert_eq!(newest.updates(), 25);
+}

@@ -211,7 +211,18 @@ pub fn write_checkpoint(dir: &Path, agent: &Agent, extra: &serde_json::Value) ->
         fs::remove_dir_all(&tmp).map_err(|e| io_err(&tmp, "remove stale temporary", e))?;
     }
     fs::create_dir_all(&tmp).map_err(|e| io_err(&tmp, "create", e))?;
+    // A save that fails (a full disk, an I/O error) takes its temporary directory with it: the
+    // space it held is what the next save needs.
+    let written = write_into(&tmp, dir, agent, extra).and_then(|()| fs::rename(&tmp, dir).map_err(|e| io_err(dir, "rename into place", e)));
+    if let Err(e) = written {
+        let _ = fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
+    sync_dir(&parent)
+}
 
+/// The checkpoint's files, written and synced in `tmp` (which becomes `dir`).
+fn write_into(tmp: &Path, dir: &Path, agent: &Agent, extra: &serde_json::Value) -> Result<(), LearnerError> {
     let state = StateFile { config: agent.config().clone(), agent: agent.state_meta(), extra: extra.clone() };
     let state = serde_json::to_vec_pretty(&state).map_err(|e| io_err(dir, "encode state", e))?;
     let tensors = encode_tensors(&agent.state_tensors(), None)?;
@@ -225,9 +236,7 @@ pub fn write_checkpoint(dir: &Path, agent: &Agent, extra: &serde_json::Value) ->
         Manifest { format: FORMAT.into(), format_version: FORMAT_VERSION, algorithm: agent.config().algorithm, obs_dim: agent.obs_dim(), act_dim: agent.act_dim(), updates: agent.updates(), files };
     let manifest = serde_json::to_vec_pretty(&manifest).map_err(|e| io_err(dir, "encode manifest", e))?;
     write_synced(&tmp.join(MANIFEST), &manifest)?;
-    sync_dir(&tmp)?;
-    fs::rename(&tmp, dir).map_err(|e| io_err(dir, "rename into place", e))?;
-    sync_dir(&parent)
+    sync_dir(tmp)
 }
 
 /// Saves a checkpoint under `root` as `ckpt-<updates>` (see the module docs), points
@@ -251,7 +260,12 @@ pub fn save(root: &Path, agent: &Agent, extra: &serde_json::Value, keep: usize) 
     }
     let dir = root.join(&name);
     write_checkpoint(&dir, agent, extra)?;
-    mapless_proto::atomic_file::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes())?;
+    if let Err(e) = mapless_proto::atomic_file::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes()) {
+        // LATEST still names the previous checkpoint; this one, which nothing names, would only
+        // hold the space a full disk lacks.
+        let _ = fs::remove_dir_all(&dir);
+        return Err(e.into());
+    }
 
     let mut all: Vec<String> = fs::read_dir(root).map_err(|e| io_err(root, "list", e))?.filter_map(|e| e.ok()?.file_name().into_string().ok()).filter(|n| n.starts_with("ckpt-")).collect();
     all.sort();

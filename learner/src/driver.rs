@@ -57,6 +57,7 @@ pub struct Driver {
     version: u64,
     last_stats: UpdateStats,
     window: (Instant, u64),
+    checkpoint_failures: u64,
 }
 
 impl Driver {
@@ -67,7 +68,18 @@ impl Driver {
             return Err(LearnerError::InvalidConfig { field: "driver", reason: "publish_every, metrics_every and checkpoint_keep must be ≥ 1".into() });
         }
         let start = agent.updates();
-        Ok(Driver { agent, source, publisher, cfg, checkpoint_root: None, metrics: None, version: weights_version, last_stats: UpdateStats::default(), window: (Instant::now(), start) })
+        Ok(Driver {
+            agent,
+            source,
+            publisher,
+            cfg,
+            checkpoint_root: None,
+            metrics: None,
+            version: weights_version,
+            last_stats: UpdateStats::default(),
+            window: (Instant::now(), start),
+            checkpoint_failures: 0,
+        })
     }
 
     /// Loads the newest checkpoint under (or at) `path`, with its weights version; `device`
@@ -115,6 +127,11 @@ impl Driver {
     /// The replay source (for its counters).
     pub fn source(&self) -> &dyn ReplaySource {
         self.source.as_ref()
+    }
+
+    /// Periodic checkpoints that could not be written (each one logged as a warning).
+    pub fn checkpoint_failures(&self) -> u64 {
+        self.checkpoint_failures
     }
 
     /// Scalars of the most recent update.
@@ -185,7 +202,13 @@ impl Driver {
             self.publish()?;
         }
         if self.cfg.checkpoint_every > 0 && n.is_multiple_of(self.cfg.checkpoint_every) && self.checkpoint_root.is_some() {
-            self.checkpoint()?;
+            // A periodic checkpoint that cannot be written (a full disk, an I/O error) costs
+            // only its own save: the previous one stays whole and named, training goes on, and
+            // the next period tries again. The final one, in `run`, is an error.
+            if let Err(e) = self.checkpoint() {
+                self.checkpoint_failures += 1;
+                tracing::warn!(error = %e, updates = n, failures = self.checkpoint_failures, "checkpoint not written; the previous one stays the newest and training goes on");
+            }
         }
         if n.is_multiple_of(self.cfg.metrics_every) {
             self.report_metrics(n);

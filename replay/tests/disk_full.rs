@@ -4,10 +4,8 @@
 //! disk and counted, sampling goes on, nothing stored is damaged, and once the file is deleted
 //! the same server accepts inserts again.
 
-use std::io::Write as _;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -21,31 +19,9 @@ use tonic::transport::Channel;
 const D: usize = 3;
 const PATIENCE: Duration = Duration::from_secs(10);
 
-/// A tmpfs of `size` mounted on a fresh directory; unmounted and removed on drop.
-struct Tmpfs(PathBuf);
-
-impl Tmpfs {
-    fn mount(size: &str) -> Tmpfs {
-        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos();
-        let dir = std::env::temp_dir().join(format!("mapless-diskfull-{}-{nanos}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let out = Command::new("mount").args(["-t", "tmpfs", "-o", &format!("size={size},mode=0700"), "mapless-diskfull"]).arg(&dir).output();
-        let why = match out {
-            Ok(o) if o.status.success() => return Tmpfs(dir),
-            Ok(o) => String::from_utf8_lossy(&o.stderr).trim().to_string(),
-            Err(e) => format!("cannot run `mount`: {e}"),
-        };
-        let _ = std::fs::remove_dir(&dir);
-        panic!("this test needs to mount a small tmpfs to fill it (root or CAP_SYS_ADMIN): `mount -t tmpfs -o size={size} … {}` failed: {why}", dir.display());
-    }
-}
-
-impl Drop for Tmpfs {
-    fn drop(&mut self) {
-        let _ = Command::new("umount").arg(&self.0).status();
-        let _ = std::fs::remove_dir(&self.0);
-    }
-}
+#[path = "../../tests/common/tmpfs.rs"]
+mod tmpfs;
+use tmpfs::{Tmpfs, fill};
 
 fn cfg() -> TableConfig {
     TableConfig {
@@ -115,22 +91,6 @@ fn contents(t: &mapless_replay::Table) -> std::collections::BTreeMap<u64, f32> {
     s.keys.iter().copied().zip(s.reward.iter().copied()).collect()
 }
 
-/// Writes `path` until the file system says it is full; returns the bytes written.
-fn fill(path: &Path) -> u64 {
-    let mut f = std::fs::File::create(path).unwrap();
-    let chunk = vec![0xA5u8; 4096];
-    let mut written = 0;
-    loop {
-        match f.write(&chunk) {
-            Ok(0) => break,
-            Ok(n) => written += n as u64,
-            Err(e) if e.raw_os_error() == Some(28) => break, // ENOSPC
-            Err(e) => panic!("filling {}: {e}", path.display()),
-        }
-    }
-    written
-}
-
 fn metric(text: &str, series: &str) -> f64 {
     let line = text.lines().find(|l| l.starts_with(series)).unwrap_or_else(|| panic!("no {series} in\n{text}"));
     line.rsplit(' ').next().unwrap().parse().unwrap()
@@ -139,7 +99,7 @@ fn metric(text: &str, series: &str) -> f64 {
 #[test]
 fn a_full_disk_refuses_inserts_with_resource_exhausted_keeps_sampling_and_accepts_again_once_space_returns() {
     let disk = Tmpfs::mount("1m");
-    let dir = disk.0.join("replay");
+    let dir = disk.path().join("replay");
     let (table, _) = DurableTable::open(cfg(), persist(&dir), 1).unwrap();
     let table = Arc::new(table);
     let registry = Arc::new(ActorRegistry::in_memory(16));
@@ -155,7 +115,7 @@ fn a_full_disk_refuses_inserts_with_resource_exhausted_keeps_sampling_and_accept
     for seq in 1..=5 {
         assert!(!rt.block_on(insert(&mut c, batch(seq))).unwrap().duplicate);
     }
-    let filler = disk.0.join("filler");
+    let filler = disk.path().join("filler");
     let filled = fill(&filler);
     assert!(filled > 0, "the tmpfs had room for the filler");
 

@@ -11,6 +11,7 @@
 #![allow(dead_code)]
 
 pub mod in_process;
+pub mod tmpfs;
 
 use std::time::Instant;
 

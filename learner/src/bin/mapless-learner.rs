@@ -133,6 +133,7 @@ struct Gauges {
     weights_version: AtomicU64,
     batches: AtomicU64,
     reconnects: AtomicU64,
+    checkpoint_failures: AtomicU64,
 }
 
 impl Gauges {
@@ -143,7 +144,8 @@ impl Gauges {
             .gauge("mapless_learner_updates_per_second", "Updates per second over the last second.", g(&self.updates_per_s_milli) / 1000.0)
             .gauge("mapless_learner_weights_version", "Newest published weights version.", g(&self.weights_version))
             .counter("mapless_learner_minibatches", "Minibatches received from the replay.", g(&self.batches))
-            .counter("mapless_learner_replay_reconnects", "Replay sample streams reopened.", g(&self.reconnects));
+            .counter("mapless_learner_replay_reconnects", "Replay sample streams reopened.", g(&self.reconnects))
+            .counter("mapless_learner_checkpoint_failures", "Periodic checkpoints that could not be written (a full disk, an I/O error); training went on.", g(&self.checkpoint_failures));
         refusals.write(&mut x, "mapless_learner_auth_refusals");
         x.text()
     }
@@ -259,6 +261,7 @@ fn run(config_path: &Path) -> Result<()> {
     let mut last_policy_write = Instant::now();
     let mut last_policy_version = driver.weights_version();
     let mut last_recorded_version = 0;
+    let mut published_file_ok = true;
     while !stop.load(Ordering::Relaxed) {
         driver.try_step(Duration::from_millis(200))?;
         if last.0.elapsed() >= Duration::from_secs(1) {
@@ -268,15 +271,23 @@ fn run(config_path: &Path) -> Result<()> {
             let weights_version = driver.weights_version();
             println!("{}", serde_json::to_string(&LearnerEvent::Status { updates: n, updates_per_s, weights_version, batches: s.batches, reconnects: s.reconnects })?);
             if weights_version != last_recorded_version {
-                std::fs::create_dir_all(&cfg.checkpoint_dir)?;
-                write_version_file(&published_file, weights_version)?;
-                last_recorded_version = weights_version;
+                // A hint for a resume, not state: on a full disk it waits for space (warned once).
+                match std::fs::create_dir_all(&cfg.checkpoint_dir).map_err(anyhow::Error::from).and_then(|()| write_version_file(&published_file, weights_version)) {
+                    Ok(()) => last_recorded_version = weights_version,
+                    Err(e) if published_file_ok => {
+                        tracing::warn!(error = %format!("{e:#}"), file = %published_file.display(), "cannot record the published version; trying again each second");
+                        published_file_ok = false;
+                    }
+                    Err(_) => {}
+                }
+                published_file_ok |= last_recorded_version == weights_version;
             }
             gauges.updates.store(n, Ordering::Relaxed);
             gauges.updates_per_s_milli.store((updates_per_s * 1000.0) as u64, Ordering::Relaxed);
             gauges.weights_version.store(weights_version, Ordering::Relaxed);
             gauges.batches.store(s.batches, Ordering::Relaxed);
             gauges.reconnects.store(s.reconnects, Ordering::Relaxed);
+            gauges.checkpoint_failures.store(driver.checkpoint_failures(), Ordering::Relaxed);
             last = (Instant::now(), n);
         }
         if last_policy_write.elapsed() >= POLICY_FILE_EVERY && driver.weights_version() != last_policy_version {
@@ -289,7 +300,7 @@ fn run(config_path: &Path) -> Result<()> {
     if driver.agent().updates() > 0 {
         driver.publish()?;
     }
-    let ck = driver.checkpoint()?;
+    let ck = driver.checkpoint().context("writing the final checkpoint (the newest one before it, named by LATEST, is still whole)")?;
     write_policy(&driver, &cfg.policy_file);
     tracing::info!(checkpoint = %ck.display(), updates = driver.agent().updates(), weights_version = driver.weights_version(), "final checkpoint written");
     println!("{}", serde_json::to_string(&LearnerEvent::Stopped { updates: driver.agent().updates(), weights_version: driver.weights_version(), checkpoint: ck })?);
