@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # deploy/certs.sh — a private CA, one server certificate for the services' host names, and a
-# bearer token per role (actor-token, learner-token), in deploy/secrets/ (git-ignored). Services
+# bearer token per role (actor-token, learner-token), and the token Prometheus sends to every
+# /metrics (metrics-token), in deploy/secrets/ (git-ignored). Services
 # that listen beyond loopback refuse to start without TLS and a token; this makes both for a
 # compose or multi-host cluster.
 #
@@ -31,7 +32,7 @@ if [ ! -s server.pem ] || [ ca.pem -nt server.pem ]; then
         -extfile server.ext -out server.pem 2>/dev/null
     rm -f server.csr server.ext
 fi
-for t in actor-token learner-token; do
+for t in actor-token learner-token metrics-token; do
     [ -s "$t" ] || { openssl rand -hex 32 | tr -d '\n' > "$t"; }
 done
 chmod 600 ca.key
@@ -39,9 +40,9 @@ chmod 644 ca.pem server.pem
 # The containers run as uid/gid 65532 (deploy/images.sh), not root: the files they mount are
 # readable by that group and by nobody else; ca.key stays the host owner's alone.
 readonly run_gid=65532
-if ! chgrp "$run_gid" server.key actor-token learner-token 2>/dev/null; then
-    echo "certs.sh: cannot give group $run_gid (the containers' user) server.key and the tokens: run as root, or 'sudo chgrp $run_gid $dir/{server.key,actor-token,learner-token}'" >&2
+if ! chgrp "$run_gid" server.key actor-token learner-token metrics-token 2>/dev/null; then
+    echo "certs.sh: cannot give group $run_gid (the containers' user) server.key and the tokens: run as root, or 'sudo chgrp $run_gid $dir/{server.key,actor-token,learner-token,metrics-token}'" >&2
     exit 1
 fi
-chmod 640 server.key actor-token learner-token
-echo "certs.sh: $dir: ca.pem, server.pem/server.key ($(openssl x509 -in server.pem -noout -ext subjectAltName | tail -1 | tr -d ' ')), actor-token, learner-token" >&2
+chmod 640 server.key actor-token learner-token metrics-token
+echo "certs.sh: $dir: ca.pem, server.pem/server.key ($(openssl x509 -in server.pem -noout -ext subjectAltName | tail -1 | tr -d ' ')), actor-token, learner-token, metrics-token" >&2

@@ -4,6 +4,7 @@
 #   mapless-replay:TAG   the replay service       (mapless-replay; glibc only, ~10 MB)
 #   mapless-actor:TAG    an actor process         (mapless-actor;  glibc only, ~10 MB)
 #   mapless-learner:TAG  the learner              (mapless-learner; libtorch, several GB)
+#   mapless-prometheus:TAG  Prometheus, from Debian's package (see stage_prometheus below)
 #
 # Each runs as the user `nonroot` (uid and gid 65532), never as root.
 #
@@ -39,15 +40,15 @@ cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p
 # the image when Docker creates them); deploy/certs.sh gives its gid read access to the secrets.
 readonly run_uid=65532
 
-# rootfs DIR: DIR as one tar on stdout for `docker import`. Links are followed (the libraries are
-# links to their files here), everything is root's and read-only to the user, but for the
-# writable folders, which are the user's.
+# rootfs DIR FOLLOW OWNED...: DIR as one tar on stdout for `docker import`. FOLLOW=1 follows
+# links (the libraries of a mapless image are links to their files here); 0 keeps them (a
+# Debian package's links name paths inside the image). Everything is root's, but for the folders
+# OWNED (relative to DIR), which are the user's.
 rootfs() {
-    python3 - "$1" "$run_uid" <<'PY'
+    python3 - "$run_uid" "$@" <<'PY'
 import os, sys, tarfile
-root, uid = sys.argv[1], int(sys.argv[2])
-owned = {"data", "train"}
-with tarfile.open(fileobj=sys.stdout.buffer, mode="w|", format=tarfile.PAX_FORMAT, dereference=True, copybufsize=1 << 20) as tar:
+uid, root, follow, owned = int(sys.argv[1]), sys.argv[2], sys.argv[3] == "1", set(sys.argv[4:])
+with tarfile.open(fileobj=sys.stdout.buffer, mode="w|", format=tarfile.PAX_FORMAT, dereference=follow, copybufsize=1 << 20) as tar:
     for top, dirs, files in os.walk(root):
         dirs.sort()
         for name in sorted(dirs) + sorted(files):
@@ -57,7 +58,7 @@ with tarfile.open(fileobj=sys.stdout.buffer, mode="w|", format=tarfile.PAX_FORMA
             mine = arc in owned
             info.uid = info.gid = uid if mine else 0
             info.uname = info.gname = "nonroot" if mine else "root"
-            if info.isfile():
+            if info.isfile() and (follow or not os.path.islink(path)):
                 with open(path, "rb") as f:
                     tar.addfile(info, f)
             else:
@@ -96,7 +97,7 @@ stage() {
         exit 1
     fi
     echo "images.sh: mapless-$name:$tag ($(du -shL "$dir/root" | cut -f1))" >&2
-    rootfs "$dir/root" |
+    rootfs "$dir/root" 1 data train |
         docker import \
             --change 'ENV LD_LIBRARY_PATH=/opt/mapless/lib' \
             --change "USER $run_uid:$run_uid" \
@@ -106,7 +107,44 @@ stage() {
             - "mapless-$name:$tag" >/dev/null
 }
 
+# mapless-prometheus:TAG — Prometheus from Debian's package (a static-ish Go binary, glibc
+# only) with the JavaScript its web UI and consoles load, the example console libraries, and
+# nothing else; deploy/compose.yaml mounts its configuration and the mapless console. The
+# packages are fetched once into target/images/debs with `apt-get download` (Debian's archive is
+# reachable where no registry is); no HEALTHCHECK (the image has no client to ask /-/healthy).
+stage_prometheus() {
+    local dir=target/images/prometheus debs=target/images/debs lib
+    local pkgs=(prometheus libjs-bootstrap4 libjs-popper.js libjs-d3 libjs-rickshaw libjs-eonasdan-bootstrap-datetimepicker libjs-jquery
+        libjs-jquery-hotkeys libjs-moment libjs-moment-timezone libjs-mustache fonts-glyphicons-halflings)
+    mkdir -p "$debs"
+    if [ "$(ls "$debs"/*.deb 2>/dev/null | wc -l)" -lt "${#pkgs[@]}" ]; then
+        ( cd "$debs" && { apt-get download "${pkgs[@]}" >/dev/null 2>&1 || { apt-get update >/dev/null && apt-get download "${pkgs[@]}" >/dev/null; }; } ) ||
+            { echo "images.sh: cannot fetch Debian's prometheus package (apt-get download ${pkgs[*]})" >&2; exit 1; }
+    fi
+    rm -rf "$dir"
+    mkdir -p "$dir/root/etc/prometheus" "$dir/root/prometheus" "$dir/root/tmp"
+    chmod 1777 "$dir/root/tmp"
+    for deb in "$debs"/*.deb; do dpkg-deb -x "$deb" "$dir/root"; done
+    rm -rf "$dir/root/etc/init.d" "$dir/root/etc/default" "$dir/root/etc/logrotate.d" "$dir/root/lib/systemd" "$dir/root/usr/share/man" "$dir/root/usr/share/doc/"lib* \
+        "$dir/root/usr/bin/promtool"
+    cp -r "$dir/root/usr/share/doc/prometheus/examples/console_libraries" "$dir/root/etc/prometheus/"
+    printf 'root:x:0:0:root:/root:/sbin/nologin\nnonroot:x:%s:%s:nonroot:/prometheus:/sbin/nologin\n' "$run_uid" "$run_uid" > "$dir/root/etc/passwd"
+    printf 'root:x:0:\nnonroot:x:%s:\n' "$run_uid" > "$dir/root/etc/group"
+    ldd "$dir/root/usr/bin/prometheus" | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// {print $1}' | while read -r lib; do
+        mkdir -p "$dir/root$(dirname "$lib")"
+        cp -L "$lib" "$dir/root$lib"
+    done
+    echo "images.sh: mapless-prometheus:$tag ($(du -sh "$dir/root" | cut -f1); $(dpkg-deb -f "$debs"/prometheus_*.deb Version))" >&2
+    rootfs "$dir/root" 0 prometheus |
+        docker import \
+            --change "USER $run_uid:$run_uid" \
+            --change 'LABEL org.opencontainers.image.title="mapless-prometheus" org.opencontainers.image.source="mapless"' \
+            --change 'ENTRYPOINT ["/usr/bin/prometheus"]' \
+            - "mapless-prometheus:$tag" >/dev/null
+}
+
 stage replay mapless-replay
 stage actor mapless-actor
 stage learner mapless-learner
-docker images --format '{{.Repository}}:{{.Tag}}  {{.Size}}' | grep -E "^mapless-(replay|actor|learner):$tag " >&2
+stage_prometheus
+docker images --format '{{.Repository}}:{{.Tag}}  {{.Size}}' | grep -E "^mapless-(replay|actor|learner|prometheus):$tag " >&2

@@ -14,7 +14,11 @@
 #      refuses a call without a token (UNAUTHENTICATED) and with the actor's (PERMISSION_DENIED);
 #   3. an actor process killed with SIGKILL is restarted by Docker, gets its slot back, and its
 #      new incarnation (a new actor id on the same slot) writes;
-#   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write;
+#      Prometheus (its port published on the host's loopback) scraped the replay, the learner
+#      and every replica with the metrics token, a scrape without it or with a wrong one is
+#      refused (401), and the mapless console renders;
+#   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write,
+#      and Prometheus finds and scrapes them by itself;
 #   5. `up -d --scale actor=2`: two replicas are left and keep writing;
 #   6. `restart replay`: its rows come back from its volume and the actors write again;
 #   7. one replica cut off the network for 15 s (`docker network disconnect`) writes again once
@@ -36,6 +40,8 @@ set -euo pipefail
 here="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$here"
 export MAPLESS_TAG="${MAPLESS_TAG:-local}"
+# Prometheus's host port: any free one (on the host's loopback), found with `docker-compose port`.
+export MAPLESS_PROMETHEUS_PORT=0
 actors="${ACTORS:-4}"
 [ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
 ./certs.sh
@@ -80,12 +86,24 @@ learner_field() { dc logs --no-color learner 2>/dev/null | grep -o "\"$1\":[0-9]
 learner_updates() { local u; u=$(learner_field updates); [ "${u:-0}" -gt 100 ]; }
 learner_versions() { local v; v=$(learner_field weights_version); [ "${v:-0}" -ge 3 ]; }
 
-# The replay's /metrics, read inside its network namespace (it binds its container's loopback).
+# The replay's /metrics, read inside its network namespace, with the metrics token (as the
+# prometheus service reads it); `replay_metrics_status ARGS` prints the HTTP status instead.
 replay_metrics() {
     local pid
     pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
-    nsenter -t "$pid" -n curl -sf --max-time 5 http://127.0.0.1:9464/metrics
+    nsenter -t "$pid" -n curl -sf --max-time 5 -H "Authorization: Bearer $(cat secrets/metrics-token)" http://127.0.0.1:9464/metrics
 }
+replay_metrics_status() {
+    local pid
+    pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
+    nsenter -t "$pid" -n curl -s -o /dev/null -w '%{http_code}' --max-time 5 "$@" http://127.0.0.1:9464/metrics
+}
+# Prometheus's HTTP API on the host port compose published (MAPLESS_PROMETHEUS_PORT=0 below).
+prom() { curl -sf --max-time 5 "http://$(dc port prometheus 9090)$1"; }
+# "JOB UP" for every target of `up`, one per line.
+prom_up() { prom "/api/v1/query?query=up" | python3 -c 'import json,sys; [print(r["metric"]["job"], r["value"][1]) for r in json.load(sys.stdin)["data"]["result"]]'; }
+# Prometheus scraped the replay, the learner and N actor replicas, each up.
+prom_scraped() { [ "$(prom_up | sort | uniq -c | awk '$3 == 1 {printf "%s=%s ", $2, $1}')" = "actor=$1 learner=1 replay=1 " ]; }
 # Actor ids with rows in the replay, and their row counts: "actor-<slot>-<pid>-<ms> ROWS".
 actor_rows() { replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p' | awk '$2 > 0'; }
 # Their slots, space-separated and sorted: "0 1 2 3".
@@ -110,10 +128,16 @@ show_actors() {
     actor_rows | sed 's/^/smoke:   /'
 }
 
-# Every container of the project: its HEALTHCHECK's verdict (the image's `health` subcommand).
+# Every container of the project: its HEALTHCHECK's verdict (the image's `health` subcommand),
+# or for Prometheus, which has none, that it runs (what it scraped is checked below).
 all_healthy() {
     local c
-    for c in $(dc ps -q); do [ "$(docker inspect -f '{{.State.Health.Status}}' "$c")" = healthy ] || return 1; done
+    for c in $(dc ps -q); do
+        case "$(docker inspect -f '{{if .State.Health}}{{.State.Health.Status}}{{else}}no-check {{.State.Status}}{{end}}' "$c")" in
+            healthy|"no-check running") ;;
+            *) return 1 ;;
+        esac
+    done
 }
 wait_for 120 "every container reports healthy" all_healthy
 # No container runs its process as root: each runs as the images' user, 65532 (deploy/images.sh).
@@ -131,6 +155,15 @@ for cid in $(dc ps -q actor); do
 done
 [ "$(registered)" = "$actors" ] || { echo "smoke: the replay holds $(registered) slots, expected $actors" >&2; exit 1; }
 show_actors
+
+# Observability from the host: Prometheus (the one published port) scraped every replica, found
+# by DNS, with the metrics token; a scrape without it is refused; the mapless console renders.
+wait_for 60 "Prometheus scraped the replay, the learner and all $actors actor replicas (up == 1)" prom_scraped "$actors"
+status=$(replay_metrics_status) && [ "$status" = 401 ] || { echo "smoke: a scrape of the replay's /metrics without the token got HTTP $status, not 401" >&2; exit 1; }
+status=$(replay_metrics_status -H "Authorization: Bearer wrong") && [ "$status" = 401 ] || { echo "smoke: a scrape with a wrong token got HTTP $status, not 401" >&2; exit 1; }
+console=$(prom "/consoles/mapless.html") || { echo "smoke: the mapless console did not render" >&2; exit 1; }
+grep -q "mapless cluster" <<<"$console" && ! grep -qi "error executing template" <<<"$console" || { echo "smoke: the mapless console: ${console:0:400}" >&2; exit 1; }
+echo "smoke: ok: Prometheus on the host's $(dc port prometheus 9090) scraped every replica; no token or a wrong one: 401; the console renders"
 
 # Tokens and roles: the replay's ServerInfo, asked inside its container over TLS, answers the
 # learner's token with every actor id that wrote; no token is UNAUTHENTICATED and the actor's
@@ -164,6 +197,7 @@ dc up -d --scale actor="$more" >/dev/null 2>&1
 wait_for 120 "two new replicas: $more slots $(seq_slots "$more") write" want_slots "$(seq_slots "$more")"
 [ "$(dc ps -q actor | wc -l)" = "$more" ] || { echo "smoke: $(dc ps -q actor | wc -l) actor containers, expected $more" >&2; exit 1; }
 show_actors
+wait_for 60 "Prometheus found the two new replicas by itself: $more actors scraped" prom_scraped "$more"
 
 dc up -d --scale actor=2 >/dev/null 2>&1
 [ "$(dc ps -q actor | wc -l)" = 2 ] || { echo "smoke: $(dc ps -q actor | wc -l) actor containers after scaling to 2" >&2; exit 1; }

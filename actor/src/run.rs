@@ -101,9 +101,14 @@ pub struct ActorConfig {
     #[serde(default)]
     pub seed: u64,
     /// Prometheus `/metrics` address, with `/healthz` beside it (`mapless-actor health ADDR`
-    /// asks it); loopback; port 0 picks one, logged at start; none: off.
+    /// asks it); loopback, or any address with `metrics_token_file`; port 0 picks one, logged at
+    /// start; none: off.
     #[serde(default)]
     pub metrics_listen: Option<std::net::SocketAddr>,
+    /// File holding the bearer token a scraper of `/metrics` must send; needed beyond loopback
+    /// (plain HTTP: a private network, as compose's) [default: none, loopback only].
+    #[serde(default)]
+    pub metrics_token_file: Option<std::path::PathBuf>,
 }
 
 fn default_worlds_per_family() -> usize {
@@ -231,7 +236,8 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let health = Health::new();
     if let Some(addr) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        metrics::spawn(&rt, addr, Arc::new(move || g.render()), health.clone(), stop_rx.clone())?;
+        let access = metrics::MetricsAccess::from_token_file(cfg.metrics_token_file.as_deref())?;
+        metrics::spawn(&rt, addr, Arc::new(move || g.render()), health.clone(), access, stop_rx.clone())?;
     }
     health.serve();
     let mut policy: Option<Policy> = None;

@@ -32,7 +32,7 @@ fn the_probe_exits_0_only_while_the_actor_serves() {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().expect("runtime");
     let (stop_tx, stop_rx) = watch::channel(false);
     let health = Health::new();
-    let addr = metrics::spawn(&rt, "127.0.0.1:0".parse().expect("address"), Arc::new(String::new), health.clone(), stop_rx).expect("metrics endpoint");
+    let addr = metrics::spawn(&rt, "127.0.0.1:0".parse().expect("address"), Arc::new(String::new), health.clone(), metrics::MetricsAccess::open(), stop_rx).expect("metrics endpoint");
 
     let starting = probe(addr);
     assert_eq!(starting.status.code(), Some(1), "{}", text(&starting));

@@ -123,6 +123,7 @@ fn actor_config(dir: &Path, replay: SocketAddr) -> PathBuf {
         security: Default::default(),
         seed: 5,
         metrics_listen: None,
+        metrics_token_file: None,
     };
     let path = dir.join("actor.yaml");
     std::fs::write(&path, serde_yaml::to_string(&cfg).unwrap()).unwrap();

@@ -81,9 +81,14 @@ pub struct LearnerServiceConfig {
     /// CA and token for reaching a replay service on another host.
     #[serde(default)]
     pub replay_security: mapless_net::ClientSecurity,
-    /// Prometheus `/metrics` address (loopback); none: off.
+    /// Prometheus `/metrics` address (loopback, or any address with `metrics_token_file`);
+    /// none: off.
     #[serde(default)]
     pub metrics_listen: Option<SocketAddr>,
+    /// File holding the bearer token a scraper of `/metrics` must send; needed beyond loopback
+    /// (plain HTTP: a private network, as compose's) [default: none, loopback only].
+    #[serde(default)]
+    pub metrics_token_file: Option<PathBuf>,
 }
 
 fn one() -> usize {

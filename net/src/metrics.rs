@@ -6,12 +6,13 @@
 
 use std::future::Future;
 use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::Arc;
-use std::sync::atomic::AtomicU64;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use axum::extract::State;
-use axum::http::StatusCode;
-use axum::http::header::CONTENT_TYPE;
+use axum::http::header::{AUTHORIZATION, CONTENT_TYPE, WWW_AUTHENTICATE};
+use axum::http::{HeaderMap, StatusCode};
 use axum::response::IntoResponse;
 use axum::routing::get;
 use prometheus_client::encoding::{EncodeLabelValue, LabelValueEncoder};
@@ -19,6 +20,7 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::registry::Registry;
+use subtle::ConstantTimeEq;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
@@ -30,11 +32,64 @@ pub const CONTENT_TYPE_TEXT: &str = "application/openmetrics-text; version=1.0.0
 /// Renders the exposition text on each scrape.
 pub type Render = Arc<dyn Fn() -> String + Send + Sync>;
 
-/// Serves `render()` at `GET /metrics` and `health` at `GET /healthz` on `listener` until
-/// `shutdown` resolves. `render` runs on the blocking pool, so it may take a std lock (the
-/// replay's table).
-pub async fn serve(listener: TcpListener, render: Render, health: Health, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
-    let app = axum::Router::new().route("/metrics", get(scrape)).with_state(render).route("/healthz", get(healthz)).with_state(health);
+/// Who may read `/metrics`. On loopback, anyone on the host (the default, with no token). Beyond
+/// loopback — a Prometheus in another container or on another host — only a scraper that sends
+/// `authorization: Bearer <token>` with the token of the process's `metrics_token_file`: the
+/// exposition names actors and shows the replay's state. The endpoint is plain HTTP, so the
+/// token crosses the network in the clear: keep such an endpoint on a private network (the
+/// compose file's). `/healthz` stays open (a probe learns SERVING or NOT_SERVING, nothing else).
+/// Refused scrapes are counted and shown as `metrics_scrape_refusals_total`.
+#[derive(Clone, Debug, Default)]
+pub struct MetricsAccess {
+    bearer: Option<Arc<[u8]>>,
+    refusals: Arc<AtomicU64>,
+}
+
+impl MetricsAccess {
+    /// Open to whoever reaches the address (loopback only).
+    pub fn open() -> Self {
+        Self::default()
+    }
+
+    /// The token in `path` (trimmed; an empty file is an error), or open without a path.
+    pub fn from_token_file(path: Option<&Path>) -> std::io::Result<Self> {
+        let Some(path) = path else { return Ok(Self::open()) };
+        let raw = std::fs::read_to_string(path).map_err(|e| std::io::Error::new(e.kind(), format!("metrics token file {}: {e}", path.display())))?;
+        let token = raw.trim();
+        if token.is_empty() {
+            return Err(std::io::Error::new(std::io::ErrorKind::InvalidData, format!("metrics token file {}: the file is empty", path.display())));
+        }
+        Ok(Self { bearer: Some(format!("Bearer {token}").into_bytes().into()), refusals: Arc::default() })
+    }
+
+    /// Whether `/metrics` may listen on `addr`: loopback, or anywhere with a token.
+    pub fn allows(&self, addr: &SocketAddr) -> bool {
+        addr.ip().is_loopback() || self.bearer.is_some()
+    }
+
+    /// Scrapes refused for a missing or wrong token.
+    pub fn refusals(&self) -> u64 {
+        self.refusals.load(Ordering::Relaxed)
+    }
+
+    fn admits(&self, headers: &HeaderMap) -> bool {
+        let Some(bearer) = &self.bearer else { return true };
+        let got = headers.get(AUTHORIZATION).map(|v| v.as_bytes()).unwrap_or_default();
+        if got.ct_eq(bearer).into() {
+            return true;
+        }
+        if self.refusals.fetch_add(1, Ordering::Relaxed) == 0 {
+            tracing::warn!("a /metrics scrape without the metrics token was refused (401); further refusals are counted in metrics_scrape_refusals_total");
+        }
+        false
+    }
+}
+
+/// Serves `render()` at `GET /metrics` (to scrapers `access` admits) and `health` at
+/// `GET /healthz` on `listener` until `shutdown` resolves. `render` runs on the blocking pool,
+/// so it may take a std lock (the replay's table).
+pub async fn serve(listener: TcpListener, render: Render, health: Health, access: MetricsAccess, shutdown: impl Future<Output = ()> + Send + 'static) -> std::io::Result<()> {
+    let app = axum::Router::new().route("/metrics", get(scrape)).with_state((render, access)).route("/healthz", get(healthz)).with_state(health);
     axum::serve(listener, app).with_graceful_shutdown(shutdown).await
 }
 
@@ -42,17 +97,29 @@ async fn healthz(State(health): State<Health>) -> impl IntoResponse {
     if health.is_serving() { (StatusCode::OK, "SERVING\n") } else { (StatusCode::SERVICE_UNAVAILABLE, "NOT_SERVING\n") }
 }
 
-async fn scrape(State(render): State<Render>) -> impl IntoResponse {
+async fn scrape(State((render, access)): State<(Render, MetricsAccess)>, headers: HeaderMap) -> axum::response::Response {
+    if !access.admits(&headers) {
+        return (StatusCode::UNAUTHORIZED, [(WWW_AUTHENTICATE, "Bearer")], "a bearer token is required (the process's metrics_token_file)\n").into_response();
+    }
     let body = tokio::task::spawn_blocking(move || render()).await.unwrap_or_else(|e| format!("# render failed: {e}\n"));
-    ([(CONTENT_TYPE, CONTENT_TYPE_TEXT)], body)
+    // The endpoint's own family, before the process's end-of-exposition line.
+    let mut own = Exposition::new();
+    own.counter("metrics_scrape_refusals", "Scrapes of /metrics refused for a missing or wrong bearer token.", access.refusals() as f64);
+    let own = own.text();
+    let own = own.strip_suffix("# EOF\n").unwrap_or(&own);
+    let body = match body.strip_suffix("# EOF\n") {
+        Some(families) => format!("{families}{own}# EOF\n"),
+        None => format!("{body}{own}"),
+    };
+    ([(CONTENT_TYPE, CONTENT_TYPE_TEXT)], body).into_response()
 }
 
-/// Binds `addr` (port 0: any free port; loopback only), logs the address, and serves `render`
-/// and `health` on `rt` until `stop` turns true. Returns the bound address. For the actor and
-/// learner processes, whose metrics are for the host they run on.
-pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, health: Health, mut stop: watch::Receiver<bool>) -> std::io::Result<SocketAddr> {
-    if !addr.ip().is_loopback() {
-        return Err(std::io::Error::new(std::io::ErrorKind::PermissionDenied, format!("metrics: refusing non-loopback address {addr}")));
+/// Binds `addr` (port 0: any free port; beyond loopback only when `access` holds a token), logs
+/// the address, and serves `render` and `health` on `rt` until `stop` turns true. Returns the
+/// bound address. For the actor and learner processes.
+pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, health: Health, access: MetricsAccess, mut stop: watch::Receiver<bool>) -> std::io::Result<SocketAddr> {
+    if !access.allows(&addr) {
+        return Err(std::io::Error::new(std::io::ErrorKind::PermissionDenied, format!("metrics: refusing non-loopback address {addr} without a metrics_token_file")));
     }
     let listener = rt.block_on(TcpListener::bind(addr))?;
     let bound = listener.local_addr()?;
@@ -61,7 +128,7 @@ pub fn spawn(rt: &tokio::runtime::Runtime, addr: SocketAddr, render: Render, hea
         let stopped = async move {
             let _ = stop.wait_for(|s| *s).await;
         };
-        if let Err(e) = serve(listener, render, health, stopped).await {
+        if let Err(e) = serve(listener, render, health, access, stopped).await {
             tracing::warn!(error = %e, "metrics endpoint stopped");
         }
     });
@@ -177,8 +244,8 @@ mod tests {
             x.text()
         });
         let health = Health::new();
-        assert!(spawn(&rt, "0.0.0.0:0".parse().unwrap(), render.clone(), health.clone(), stop_rx.clone()).is_err(), "non-loopback is refused");
-        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), render, health.clone(), stop_rx).unwrap();
+        assert!(spawn(&rt, "0.0.0.0:0".parse().unwrap(), render.clone(), health.clone(), MetricsAccess::open(), stop_rx.clone()).is_err(), "non-loopback is refused");
+        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), render, health.clone(), MetricsAccess::open(), stop_rx).unwrap();
         let get = |path: &'static str| {
             rt.block_on(async move {
                 let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
@@ -193,7 +260,8 @@ mod tests {
         assert!(ok.to_ascii_lowercase().contains("content-type: application/openmetrics-text"), "{ok}");
         assert!(ok.contains("# HELP x Things.\n# TYPE x counter\nx_total 3.0\n"), "{ok}");
         assert!(ok.contains(r#"y{actor="a\"b\\c\nd"} 0.5"#), "label values are escaped: {ok}");
-        assert!(ok.trim_end().ends_with("# EOF"), "{ok}");
+        assert!(ok.contains("metrics_scrape_refusals_total 0"), "{ok}");
+        assert!(ok.trim_end().ends_with("# EOF") && ok.matches("# EOF").count() == 1, "{ok}");
         assert!(get("/nope").starts_with("HTTP/1.1 404"));
         let _ = stop_tx.send(true);
     }
@@ -203,13 +271,51 @@ mod tests {
         let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
         let (stop_tx, stop_rx) = watch::channel(false);
         let health = Health::new();
-        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), Arc::new(String::new), health.clone(), stop_rx).unwrap();
+        let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), Arc::new(String::new), health.clone(), MetricsAccess::open(), stop_rx).unwrap();
         let status = || rt.block_on(crate::health::get_healthz(addr)).unwrap();
         assert_eq!(status(), 503, "starting");
         health.serve();
         assert_eq!(status(), 200, "serving");
         health.drain();
         assert_eq!(status(), 503, "draining");
+        let _ = stop_tx.send(true);
+    }
+
+    #[test]
+    fn beyond_loopback_a_scrape_needs_the_token_and_refusals_are_counted() {
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("metrics-token");
+        std::fs::write(&file, "s3cret\n").unwrap();
+        std::fs::write(dir.path().join("empty"), " \n").unwrap();
+        assert!(MetricsAccess::from_token_file(Some(&dir.path().join("empty"))).is_err(), "an empty token file is an error");
+        let access = MetricsAccess::from_token_file(Some(&file)).unwrap();
+        let render: Render = Arc::new(|| {
+            let mut x = Exposition::new();
+            x.counter("x", "Things.", 3.0);
+            x.text()
+        });
+        // Any address, here 0.0.0.0, is allowed with a token; scraped on loopback below.
+        let addr = spawn(&rt, "0.0.0.0:0".parse().unwrap(), render, Health::new(), access.clone(), stop_rx).unwrap();
+        let addr = SocketAddr::from(([127, 0, 0, 1], addr.port()));
+        let get = |path: &'static str, auth: &'static str| {
+            rt.block_on(async move {
+                let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+                s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n{auth}Connection: close\r\n\r\n").as_bytes()).await.unwrap();
+                let mut out = String::new();
+                s.read_to_string(&mut out).await.unwrap();
+                out
+            })
+        };
+        assert!(get("/metrics", "").starts_with("HTTP/1.1 401"), "no token");
+        assert!(get("/metrics", "Authorization: Bearer wrong\r\n").starts_with("HTTP/1.1 401"), "a wrong token");
+        assert!(get("/metrics", "Authorization: Bearer s3cret-and-more\r\n").starts_with("HTTP/1.1 401"), "a longer token");
+        assert!(get("/healthz", "").starts_with("HTTP/1.1 503"), "health stays open");
+        let ok = get("/metrics", "Authorization: Bearer s3cret\r\n");
+        assert!(ok.starts_with("HTTP/1.1 200") && ok.contains("x_total 3.0"), "{ok}");
+        assert!(ok.contains("metrics_scrape_refusals_total 3.0") || ok.contains("metrics_scrape_refusals_total 3\n"), "{ok}");
+        assert_eq!(access.refusals(), 3);
         let _ = stop_tx.send(true);
     }
 }

@@ -27,7 +27,7 @@ use std::sync::Arc;
 
 use mapless_net::AuthRefusals;
 use mapless_net::health::Health;
-use mapless_net::metrics::{Exposition, Labels, labels};
+use mapless_net::metrics::{Exposition, Labels, MetricsAccess, labels};
 use tokio::net::TcpListener;
 
 use crate::actors::ActorStats;
@@ -44,9 +44,10 @@ pub async fn serve(
     registry: Arc<ActorRegistry>,
     refusals: AuthRefusals,
     health: Health,
+    access: MetricsAccess,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry, &refusals)), health, shutdown).await
+    mapless_net::metrics::serve(listener, Arc::new(move || render(&table, &registry, &refusals)), health, access, shutdown).await
 }
 
 /// The exposition text for `table`, `registry` and `refusals`.

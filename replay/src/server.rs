@@ -64,9 +64,13 @@ pub struct ServerConfig {
     /// gRPC address. Loopback by default; any other address needs `tls` and a token
     /// (`auth_token_files` or `auth_token_file`).
     pub listen: SocketAddr,
-    /// Prometheus text exposition at `http://<addr>/metrics`; none disables it. Loopback only
-    /// (it has no TLS or token); any other address is refused.
+    /// Prometheus text exposition at `http://<addr>/metrics`; none disables it. Loopback, or
+    /// any address with `metrics_token_file` (a Prometheus beside it on a private network).
     pub metrics_listen: Option<SocketAddr>,
+    /// File holding the bearer token a scraper of `/metrics` must send (trimmed; plain HTTP, so
+    /// for a private network); needed beyond loopback [default: none, loopback only; ours:
+    /// the exposition names every actor and shows the table's state].
+    pub metrics_token_file: Option<PathBuf>,
     /// Server certificate chain and private key (PEM files).
     pub tls: Option<TlsFiles>,
     /// File whose content (trimmed) is a full-rights bearer token: a request carrying it as
@@ -115,6 +119,7 @@ impl Default for ServerConfig {
         ServerConfig {
             listen: DEFAULT_LISTEN.parse().expect("valid default address"),
             metrics_listen: Some(DEFAULT_METRICS_LISTEN.parse().expect("valid default address")),
+            metrics_token_file: None,
             tls: None,
             auth_token_file: None,
             auth_token_files: RoleTokenFiles::default(),
@@ -154,8 +159,9 @@ pub enum ServerError {
     )]
     Insecure { addr: SocketAddr },
     #[error(
-        "refusing to serve /metrics on {addr}: it has neither TLS nor a token, and anyone who can reach it reads every actor id \
-         and the table's state. Bind loopback (metrics_listen: 127.0.0.1:9464, the default), or `--no-metrics`."
+        "refusing to serve /metrics on {addr} without a token: anyone who can reach it would read every actor id \
+         and the table's state. Set metrics_token_file (scrapers send it as a bearer token), bind loopback \
+         (metrics_listen: 127.0.0.1:9464, the default), or `--no-metrics`."
     )]
     InsecureMetrics { addr: SocketAddr },
     #[error(transparent)]
@@ -186,9 +192,11 @@ impl ServerConfig {
         if !self.listen.ip().is_loopback() && (self.tls.is_none() || (self.auth_token_file.is_none() && self.auth_token_files.is_empty())) {
             return Err(ServerError::Insecure { addr: self.listen });
         }
-        // As the actors' and the learner's: /metrics stays on the host it describes.
+        // As the actors' and the learner's: /metrics stays on the host it describes, unless a
+        // token guards it.
         if let Some(m) = self.metrics_listen
             && !m.ip().is_loopback()
+            && self.metrics_token_file.is_none()
         {
             return Err(ServerError::InsecureMetrics { addr: m });
         }
@@ -310,11 +318,14 @@ mod tests {
     }
 
     #[test]
-    fn metrics_stay_on_loopback() {
-        let c = ServerConfig { metrics_listen: Some("0.0.0.0:9464".parse().unwrap()), ..ServerConfig::default() };
+    fn metrics_stay_on_loopback_unless_a_token_guards_them() {
+        let mut c = ServerConfig { metrics_listen: Some("0.0.0.0:9464".parse().unwrap()), ..ServerConfig::default() };
         let err = c.validate().unwrap_err();
         assert!(matches!(err, ServerError::InsecureMetrics { .. }), "{err}");
-        assert!(err.to_string().contains("127.0.0.1:9464"), "{err}");
+        assert!(err.to_string().contains("127.0.0.1:9464") && err.to_string().contains("metrics_token_file"), "{err}");
+        c.metrics_token_file = Some("metrics-token".into());
+        c.validate().expect("a token guards a routable /metrics");
+        c.metrics_token_file = None;
         ServerConfig { metrics_listen: None, ..ServerConfig::default() }.validate().unwrap();
         ServerConfig { metrics_listen: Some("[::1]:0".parse().unwrap()), ..ServerConfig::default() }.validate().unwrap();
     }

@@ -804,7 +804,7 @@ async fn metrics_endpoint_serves_prometheus_text() {
     let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("addr");
     let (stop, stopped) = oneshot::channel::<()>();
-    let server = tokio::spawn(metrics::serve(listener, Arc::clone(&h.table), Arc::default(), Default::default(), Default::default(), async {
+    let server = tokio::spawn(metrics::serve(listener, Arc::clone(&h.table), Arc::default(), Default::default(), Default::default(), Default::default(), async {
         let _ = stopped.await;
     }));
     let (status, headers, body) = tokio::task::spawn_blocking(move || http_get(addr, "/metrics")).await.expect("get");

@@ -109,6 +109,7 @@ impl Cluster {
             auth_token_files: Default::default(),
             replay_security: Default::default(),
             metrics_listen: Some(any_port),
+            metrics_token_file: None,
         };
         fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
         let learner_cmd = json_flag(vec![bins.learner.clone(), "--config".into(), p(&run.abs.join("learner.yaml")), "--run".into(), run.name.clone()]);
@@ -144,6 +145,7 @@ impl Cluster {
             seed: cfg.seed,
             // Each actor process logs the port it got.
             metrics_listen: Some(SocketAddr::from(([127, 0, 0, 1], 0))),
+            metrics_token_file: None,
         };
         fs::write(run.join("actor.yaml"), serde_yaml::to_string(&actor_cfg)?)?;
 

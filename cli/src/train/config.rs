@@ -548,6 +548,12 @@ mod tests {
         }
         let actor_mounts = mounts("actor");
         assert!(actor_mounts.contains(&path(&roles.actor)) && !actor_mounts.contains(&path(&roles.learner)), "{actor_mounts:?}");
+        // /metrics reaches the prometheus service, each guarded by the metrics token it mounts,
+        // which Prometheus sends.
+        for (service, token) in [("replay", &replay.metrics_token_file), ("learner", &learner.metrics_token_file), ("actor", &actor.metrics_token_file)] {
+            assert!(mounts(service).contains(&path(token)), "{service} mounts its metrics token");
+        }
+        assert!(mounts("prometheus").contains(&path(&actor.metrics_token_file)), "prometheus holds the metrics token");
     }
 
     #[test]

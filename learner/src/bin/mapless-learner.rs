@@ -248,7 +248,8 @@ fn run(config_path: &Path) -> Result<()> {
     let gauges = Arc::new(Gauges::default());
     if let Some(m) = cfg.metrics_listen {
         let g = Arc::clone(&gauges);
-        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render(&refusals)), health.clone(), stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
+        let access = metrics::MetricsAccess::from_token_file(cfg.metrics_token_file.as_deref())?;
+        let bound = metrics::spawn(&rt, m, Arc::new(move || g.render(&refusals)), health.clone(), access, stop_rx.clone()).with_context(|| format!("binding /metrics on {m}"))?;
         println!("metrics on http://{bound}/metrics");
     }
     println!("weights on {addr}");

@@ -25,6 +25,7 @@ use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use mapless_net::TlsFiles;
 use mapless_net::health::{GrpcProbeArgs, InfoArgs, grpc_probe, replay_info};
+use mapless_net::metrics::MetricsAccess;
 use mapless_replay::server::{DEFAULT_LISTEN, ServerConfig, serve};
 use mapless_replay::shm::ShmIngest;
 use mapless_replay::{DurableTable, SamplerConfig, metrics};
@@ -261,6 +262,7 @@ async fn run(cfg: ServerConfig, mut options: mapless_replay::server::ServeOption
 
     let listener = TcpListener::bind(cfg.listen).await.with_context(|| format!("binding gRPC address {}", cfg.listen))?;
     let addr = listener.local_addr()?;
+    let metrics_access = MetricsAccess::from_token_file(cfg.metrics_token_file.as_deref())?;
     let metrics_listener = match cfg.metrics_listen {
         Some(m) => Some(TcpListener::bind(m).await.with_context(|| format!("binding metrics address {m}"))?),
         None => None,
@@ -276,7 +278,7 @@ async fn run(cfg: ServerConfig, mut options: mapless_replay::server::ServeOption
             println!("metrics on http://{maddr}/metrics");
             let (table, registry, refusals, health) = (Arc::clone(&table), Arc::clone(&registry), options.security.refusals.clone(), options.health.clone());
             let rx = stop_rx.clone();
-            Some(tokio::spawn(async move { metrics::serve(l, table, registry, refusals, health, stopped(rx)).await }.in_current_span()))
+            Some(tokio::spawn(async move { metrics::serve(l, table, registry, refusals, health, metrics_access, stopped(rx)).await }.in_current_span()))
         }
         None => None,
     };
