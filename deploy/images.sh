@@ -24,6 +24,9 @@
 # Usage: deploy/images.sh [TAG]   (default TAG: local; also $MAPLESS_PROFILE=release|dev, and
 # $LIBTORCH to link a libtorch already installed instead of scripts/setup-torch.sh's)
 set -euo pipefail
+# The images' files keep the modes they are staged with, and their user is not root: whatever
+# the caller's umask, staged files are world-readable (and executables world-executable).
+umask 022
 root="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")/.." && pwd -P)"
 cd "$root"
 tag="${1:-local}"
@@ -49,7 +52,9 @@ rootfs() {
 import os, sys, tarfile
 uid, root, follow, owned = int(sys.argv[1]), sys.argv[2], sys.argv[3] == "1", set(sys.argv[4:])
 with tarfile.open(fileobj=sys.stdout.buffer, mode="w|", format=tarfile.PAX_FORMAT, dereference=follow, copybufsize=1 << 20) as tar:
-    for top, dirs, files in os.walk(root):
+    def fail(e):
+        raise e
+    for top, dirs, files in os.walk(root, followlinks=follow, onerror=fail):
         dirs.sort()
         for name in sorted(dirs) + sorted(files):
             path = os.path.join(top, name)
@@ -107,11 +112,12 @@ stage() {
             - "mapless-$name:$tag" >/dev/null
 }
 
-# mapless-prometheus:TAG — Prometheus from Debian's package (a static-ish Go binary, glibc
-# only) with the JavaScript its web UI and consoles load, the example console libraries, and
-# nothing else; deploy/compose.yaml mounts its configuration and the mapless console. The
-# packages are fetched once into target/images/debs with `apt-get download` (Debian's archive is
-# reachable where no registry is); no HEALTHCHECK (the image has no client to ask /-/healthy).
+# mapless-prometheus:TAG — Prometheus from the host's Debian (or Ubuntu) package archive (a Go
+# binary, glibc only; 2.42 on Debian 12) with the JavaScript its web UI and consoles load, the
+# example console libraries, and nothing else; deploy/compose.yaml mounts its configuration and
+# the mapless console. The packages are fetched once into target/images/debs with `apt-get
+# download` (Debian's archive is reachable where no registry is), so this needs apt-get and
+# dpkg-deb; no HEALTHCHECK (the image has no client to ask /-/healthy).
 stage_prometheus() {
     local dir=target/images/prometheus debs=target/images/debs lib
     local pkgs=(prometheus libjs-bootstrap4 libjs-popper.js libjs-d3 libjs-rickshaw libjs-eonasdan-bootstrap-datetimepicker libjs-jquery
@@ -130,7 +136,8 @@ stage_prometheus() {
     cp -r "$dir/root/usr/share/doc/prometheus/examples/console_libraries" "$dir/root/etc/prometheus/"
     printf 'root:x:0:0:root:/root:/sbin/nologin\nnonroot:x:%s:%s:nonroot:/prometheus:/sbin/nologin\n' "$run_uid" "$run_uid" > "$dir/root/etc/passwd"
     printf 'root:x:0:\nnonroot:x:%s:\n' "$run_uid" > "$dir/root/etc/group"
-    ldd "$dir/root/usr/bin/prometheus" | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// {print $1}' | while read -r lib; do
+    # (A statically linked build has no libraries: ldd fails, and nothing is copied.)
+    { ldd "$dir/root/usr/bin/prometheus" || true; } | awk '$2 == "=>" && $3 ~ /^\// {print $3} $1 ~ /^\// {print $1}' | while read -r lib; do
         mkdir -p "$dir/root$(dirname "$lib")"
         cp -L "$lib" "$dir/root$lib"
     done

@@ -10,13 +10,13 @@
 #   1. the learner samples and updates, and publishes new weights versions;
 #   2. N distinct actor ids, on slots 0..N-1, write rows into the replay (its /metrics), and
 #      every replica acts with a published policy (version ≥ 2) with its batches acknowledged;
-#      the replay's ServerInfo (`mapless-replay info`) lists them for the learner's token and
-#      refuses a call without a token (UNAUTHENTICATED) and with the actor's (PERMISSION_DENIED);
-#   3. an actor process killed with SIGKILL is restarted by Docker, gets its slot back, and its
-#      new incarnation (a new actor id on the same slot) writes;
 #      Prometheus (its port published on the host's loopback) scraped the replay, the learner
 #      and every replica with the metrics token, a scrape without it or with a wrong one is
-#      refused (401), and the mapless console renders;
+#      refused (401), and the mapless console renders; the replay's ServerInfo (`mapless-replay
+#      info`) lists the actors for the learner's token and refuses a call without a token
+#      (UNAUTHENTICATED) and with the actor's (PERMISSION_DENIED);
+#   3. an actor process killed with SIGKILL is restarted by Docker, gets its slot back, and its
+#      new incarnation (a new actor id on the same slot) writes;
 #   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write,
 #      and Prometheus finds and scrapes them by itself;
 #   5. `up -d --scale actor=2`: two replicas are left and keep writing;

@@ -1,11 +1,14 @@
 //! The compose cluster as its users launch it: `deploy/smoke.sh` builds the images (debug
 //! binaries here, layers reused on a rerun) and drills `docker-compose up --scale actor=4`:
-//! health-ordered start, learner updates reaching the actors, four distinct actor ids, a killed
-//! actor restarted on its slot, scaling to 6 and back to 2, a replay restart that keeps its rows,
-//! an actor cut off the network and reconnected, exactly-once delivery per actor, a final
-//! checkpoint and a teardown that leaves nothing behind. It needs a Docker engine and root (it
-//! kills an actor's process and reads loopback-only `/metrics` from inside a container's network
-//! namespace); where no engine answers `docker info` it says so and skips.
+//! health-ordered start of non-root containers, learner updates reaching the actors, four
+//! distinct actor ids, Prometheus scraping every replica with the metrics token, a killed actor
+//! restarted on its slot, scaling to 6 (Prometheus finds the new replicas) and back to 2, a
+//! replay restart that keeps its rows, an actor cut off the network and reconnected,
+//! exactly-once delivery per actor, a final checkpoint and a teardown that leaves nothing
+//! behind. It needs a Docker engine, root (it kills an actor's process and reads the replay's
+//! unpublished `/metrics` from inside its container's network namespace) and apt-get (the
+//! Prometheus image is Debian's package); where no engine answers `docker info` it says so and
+//! skips.
 
 use std::path::Path;
 use std::process::Command;

@@ -261,9 +261,12 @@ pub fn save(root: &Path, agent: &Agent, extra: &serde_json::Value, keep: usize) 
     let dir = root.join(&name);
     write_checkpoint(&dir, agent, extra)?;
     if let Err(e) = mapless_proto::atomic_file::write_file_atomically(&root.join(LATEST), format!("{name}\n").as_bytes()) {
-        // LATEST still names the previous checkpoint; this one, which nothing names, would only
-        // hold the space a full disk lacks.
-        let _ = fs::remove_dir_all(&dir);
+        // Up to the rename, LATEST still names the previous checkpoint, and this one, which
+        // nothing names, would only hold the space a full disk lacks. A failed fsync of the
+        // directory comes after the rename: LATEST may name this one, which must stay.
+        if e.step != mapless_proto::atomic_file::AtomicWriteStep::SyncDir {
+            let _ = fs::remove_dir_all(&dir);
+        }
         return Err(e.into());
     }
 

@@ -234,6 +234,17 @@ mod tests {
     use super::*;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
+    /// The whole HTTP/1.1 response to `GET path` with the `headers` lines (each ending "\r\n").
+    fn http_get(rt: &tokio::runtime::Runtime, addr: SocketAddr, path: &str, headers: &str) -> String {
+        rt.block_on(async move {
+            let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+            s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n{headers}Connection: close\r\n\r\n").as_bytes()).await.unwrap();
+            let mut out = String::new();
+            s.read_to_string(&mut out).await.unwrap();
+            out
+        })
+    }
+
     #[test]
     fn a_scrape_gets_the_rendered_text_and_other_paths_404() {
         let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
@@ -246,15 +257,7 @@ mod tests {
         let health = Health::new();
         assert!(spawn(&rt, "0.0.0.0:0".parse().unwrap(), render.clone(), health.clone(), MetricsAccess::open(), stop_rx.clone()).is_err(), "non-loopback is refused");
         let addr = spawn(&rt, "127.0.0.1:0".parse().unwrap(), render, health.clone(), MetricsAccess::open(), stop_rx).unwrap();
-        let get = |path: &'static str| {
-            rt.block_on(async move {
-                let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-                s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").as_bytes()).await.unwrap();
-                let mut out = String::new();
-                s.read_to_string(&mut out).await.unwrap();
-                out
-            })
-        };
+        let get = |path: &str| http_get(&rt, addr, path, "");
         let ok = get("/metrics");
         assert!(ok.starts_with("HTTP/1.1 200"), "{ok}");
         assert!(ok.to_ascii_lowercase().contains("content-type: application/openmetrics-text"), "{ok}");
@@ -299,15 +302,7 @@ mod tests {
         // Any address, here 0.0.0.0, is allowed with a token; scraped on loopback below.
         let addr = spawn(&rt, "0.0.0.0:0".parse().unwrap(), render, Health::new(), access.clone(), stop_rx).unwrap();
         let addr = SocketAddr::from(([127, 0, 0, 1], addr.port()));
-        let get = |path: &'static str, auth: &'static str| {
-            rt.block_on(async move {
-                let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-                s.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n{auth}Connection: close\r\n\r\n").as_bytes()).await.unwrap();
-                let mut out = String::new();
-                s.read_to_string(&mut out).await.unwrap();
-                out
-            })
-        };
+        let get = |path: &str, auth: &str| http_get(&rt, addr, path, auth);
         assert!(get("/metrics", "").starts_with("HTTP/1.1 401"), "no token");
         assert!(get("/metrics", "Authorization: Bearer wrong\r\n").starts_with("HTTP/1.1 401"), "a wrong token");
         assert!(get("/metrics", "Authorization: Bearer s3cret-and-more\r\n").starts_with("HTTP/1.1 401"), "a longer token");

@@ -262,7 +262,8 @@ async fn run(cfg: ServerConfig, mut options: mapless_replay::server::ServeOption
 
     let listener = TcpListener::bind(cfg.listen).await.with_context(|| format!("binding gRPC address {}", cfg.listen))?;
     let addr = listener.local_addr()?;
-    let metrics_access = MetricsAccess::from_token_file(cfg.metrics_token_file.as_deref())?;
+    // The token is read only when /metrics is on (`--no-metrics` needs no file).
+    let metrics_access = if cfg.metrics_listen.is_some() { MetricsAccess::from_token_file(cfg.metrics_token_file.as_deref())? } else { MetricsAccess::open() };
     let metrics_listener = match cfg.metrics_listen {
         Some(m) => Some(TcpListener::bind(m).await.with_context(|| format!("binding metrics address {m}"))?),
         None => None,
