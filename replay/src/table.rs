@@ -708,18 +708,15 @@ impl Table {
         let cap = self.cfg.capacity as u64;
         let s = &mut *st;
         let table_size = s.size;
-        let n = s.size as f64;
         let mut slots = Vec::with_capacity(rows);
         let mut keys = Vec::with_capacity(rows);
         let mut probabilities = Vec::with_capacity(rows);
         let mut importance_weights = Vec::with_capacity(rows);
-        let mut max_w = 0.0f64;
         if let Some((first_key, len)) = self.uniform_window(s) {
             // Every key in first_key..first_key + len is live with weight 1: draw keys
             // stratified over that range, as the tree walk would over the slots.
             let segment = len as f64 / rows as f64;
             let p = 1.0 / len as f64;
-            let w = (n * p).powf(-beta);
             for i in 0..rows {
                 let u = (i as f64 + s.rng.random::<f64>()) * segment;
                 let key = first_key + (u as u64).min(len - 1);
@@ -727,10 +724,8 @@ impl Table {
                 slots.push(slot);
                 keys.push(key);
                 probabilities.push(p);
-                importance_weights.push(w as f32);
                 s.times_sampled[slot] = s.times_sampled[slot].saturating_add(1);
             }
-            max_w = w;
         } else {
             let total = s.tree.total();
             let segment = total / rows as f64;
@@ -739,12 +734,9 @@ impl Table {
                 let u = (i as f64 + s.rng.random::<f64>()) * segment;
                 let slot = s.tree.find(u.min(total));
                 let p = s.tree.get(slot) / total;
-                let w = (n * p).powf(-beta);
-                max_w = max_w.max(w);
                 slots.push(slot);
                 keys.push(s.key[slot]);
                 probabilities.push(p);
-                importance_weights.push(w as f32);
                 s.times_sampled[slot] = s.times_sampled[slot].saturating_add(1);
                 if self.cfg.max_times_sampled > 0 && s.times_sampled[slot] >= self.cfg.max_times_sampled && s.live[slot] {
                     s.live[slot] = false;
@@ -753,11 +745,14 @@ impl Table {
                 }
             }
         }
-        // Normalise by the minibatch's largest weight (as Acme and Dopamine do), so weights
-        // only ever scale updates down.
-        for w in &mut importance_weights {
-            *w = (*w as f64 / max_w) as f32;
-        }
+        // w_i = (N·P(i))^−β, normalised by the minibatch's largest weight (as Acme and Dopamine
+        // do), so weights only ever scale updates down: w_i / max w = (P_min / P(i))^β. Computed
+        // from the ratio, N cancels and nothing overflows: priorities many orders of magnitude
+        // apart (|TD error| 1e200 beside 1) made (N·P)^−β infinite in f32 and the weights
+        // inf/inf or 0, which `SampledBatch::validate` refuses. A weight below f32's range is
+        // kept at its smallest positive value.
+        let p_min = probabilities.iter().copied().fold(f64::INFINITY, f64::min);
+        importance_weights.extend(probabilities.iter().map(|&p| ((p_min / p).powf(beta) as f32).max(f32::MIN_POSITIVE)));
         // Gathered after drawing: a row removed by max_times_sampled still has its data.
         let (obs, obs_f32le) = gather(&s.obs, d, &slots, floats);
         let (next_obs, next_obs_f32le) = gather(&s.next_obs, d, &slots, floats);
