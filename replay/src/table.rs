@@ -738,10 +738,21 @@ impl Table {
                 keys.push(s.key[slot]);
                 probabilities.push(p);
                 s.times_sampled[slot] = s.times_sampled[slot].saturating_add(1);
-                if self.cfg.max_times_sampled > 0 && s.times_sampled[slot] >= self.cfg.max_times_sampled && s.live[slot] {
-                    s.live[slot] = false;
-                    s.tree.set(slot, 0.0);
-                    s.size -= 1;
+            }
+            // Rows that reached max_times_sampled leave once the whole minibatch is drawn: every
+            // draw is from the distribution its probability describes. Removed as they were
+            // drawn, the later draws of the same minibatch walked a tree that had lost mass
+            // under their stale `total` (biased), and once it had lost all of it returned a
+            // never-live slot with probability 0 (a table of one row with max_times_sampled 1,
+            // asked for 2 rows). A row may so appear more often than max_times_sampled within
+            // one minibatch, never in a later one.
+            if self.cfg.max_times_sampled > 0 {
+                for &slot in &slots {
+                    if s.times_sampled[slot] >= self.cfg.max_times_sampled && s.live[slot] {
+                        s.live[slot] = false;
+                        s.tree.set(slot, 0.0);
+                        s.size -= 1;
+                    }
                 }
             }
         }

@@ -267,6 +267,22 @@ fn importance_weights_stay_finite_and_positive_when_n_p_to_the_minus_beta_overfl
 }
 
 #[test]
+fn a_minibatch_larger_than_what_max_times_sampled_leaves_draws_only_rows_that_were_stored() {
+    // One row that may be sampled once, a minibatch of 3: rows removed as they were drawn left
+    // the later draws an empty tree, which returned a never-written slot with probability 0
+    // (found by the wal_recovery fuzz target on a recovered table).
+    let mut c = cfg(4);
+    c.max_times_sampled = 1;
+    c.sampler = SamplerConfig::Prioritized { alpha: 0.6, beta: 0.4, epsilon: 1e-6 };
+    let t = Table::new(c, 5).unwrap();
+    t.insert(&batch("a", 1, 7.0, 1), None).unwrap();
+    let s = t.sample(3, None, None).unwrap();
+    s.validate(D, 2, 8).unwrap();
+    assert_eq!((s.keys.as_slice(), s.reward.as_slice()), (&[0, 0, 0][..], &[7.0, 7.0, 7.0][..]));
+    assert_eq!(t.size(), 0, "the row left after the minibatch");
+}
+
+#[test]
 fn items_leave_after_max_times_sampled() {
     let mut c = cfg(10);
     c.max_times_sampled = 2;
