@@ -950,6 +950,48 @@ impl Table {
         }
     }
 
+    /// Every live row with its key, oldest key first, after checking the table's own
+    /// bookkeeping (the count of live rows is `size`, each live key lies in the window of the
+    /// newest `capacity` keys and sits in its slot, each live weight is finite and ≥ 0).
+    /// O(capacity): for the fuzzing harnesses (`crate::fuzzing`) and tests, never a hot path.
+    pub(crate) fn stored_rows(&self) -> Result<Vec<StoredRow>, String> {
+        let st = self.lock();
+        let (d, a, cap) = (self.cfg.obs_dim, self.cfg.act_dim, self.cfg.capacity as u64);
+        let live = st.live.iter().filter(|&&l| l).count() as u64;
+        if live != st.size {
+            return Err(format!("size {} but {live} live slots", st.size));
+        }
+        if st.size > cap {
+            return Err(format!("size {} above capacity {cap}", st.size));
+        }
+        let window = st.next_key.saturating_sub(cap)..st.next_key;
+        let mut rows = Vec::with_capacity(live as usize);
+        for slot in (0..self.cfg.capacity).filter(|&s| st.live[s]) {
+            let key = st.key[slot];
+            if !window.contains(&key) || key % cap != slot as u64 {
+                return Err(format!("live slot {slot} holds key {key}; the window is {window:?}"));
+            }
+            let w = st.tree.get(slot);
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(format!("live slot {slot} has weight {w}"));
+            }
+            rows.push(StoredRow {
+                key,
+                obs: st.obs[slot * d..(slot + 1) * d].to_vec(),
+                action: st.action[slot * a..(slot + 1) * a].to_vec(),
+                reward: st.reward[slot],
+                next_obs: st.next_obs[slot * d..(slot + 1) * d].to_vec(),
+                terminal: st.terminal[slot],
+                truncated: st.truncated[slot],
+                episode_id: st.episode_id[slot],
+                step: st.step[slot],
+                policy_version: st.policy_version[slot],
+            });
+        }
+        rows.sort_by_key(|r| r.key);
+        Ok(rows)
+    }
+
     /// Bytes held by the table's columns and sampler (what the memory target measures).
     pub fn memory_bytes(&self) -> usize {
         let st = self.lock();
@@ -960,6 +1002,21 @@ impl Table {
             + (st.step.len() + st.times_sampled.len()) * 4
             + st.tree.memory_bytes()
     }
+}
+
+/// One stored row as [`Table::stored_rows`] copies it out.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct StoredRow {
+    pub key: u64,
+    pub obs: Vec<f32>,
+    pub action: Vec<f32>,
+    pub reward: f32,
+    pub next_obs: Vec<f32>,
+    pub terminal: bool,
+    pub truncated: bool,
+    pub episode_id: u64,
+    pub step: u32,
+    pub policy_version: u64,
 }
 
 /// A restore in progress: a new table's lock, held from [`Table::restore`] until
