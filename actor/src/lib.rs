@@ -11,6 +11,9 @@
 //! How it reaches the replay, the learner's weights and the stats collector (endpoints,
 //! security, the shared-memory writer, the insert, weights and stats clients) is `mapless-net`.
 
+/// The `policy_safetensors` fuzz target's harness (`fuzz/` at the repository root); not an API.
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod identity;
 pub mod policy;
 pub mod run;

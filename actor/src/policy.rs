@@ -213,6 +213,14 @@ impl Policy {
         }
         let head = self.head;
         let y = self.raw_output(obs)?;
+        // Finite weights can still overflow f32 on a finite observation (inf − inf in a dot
+        // product): the output is NaN and tanh keeps it NaN, an action no vehicle can take.
+        // Refused here rather than handed to the simulator (found by the policy_safetensors
+        // fuzz harness's seed of large but finite weights).
+        if let Some(i) = y.iter().position(|v| v.is_nan()) {
+            let width = y.len() / rows;
+            return Err(ActorError::BadWeights(format!("output {} of row {} is NaN for a finite observation: the weights overflow f32", i % width, i / width)));
+        }
         match head {
             Head::Deterministic => {
                 for (dst, v) in actions.iter_mut().zip(y) {

@@ -187,6 +187,14 @@ impl BatchHeader {
         h
     }
 
+    /// A header exactly as raw shared memory could hold it, unchecked (a writer never makes
+    /// one: [`BatchHeader::new`]); for the replay's fuzzing harness, which feeds the ingest
+    /// the headers a buggy or hostile writer could send.
+    #[doc(hidden)]
+    pub fn from_raw_parts(sequence: u64, actor_id_len: u32, actor_id: [u8; MAX_ACTOR_ID_BYTES]) -> BatchHeader {
+        BatchHeader { sequence, actor_id_len, _reserved: 0, actor_id }
+    }
+
     /// The sender's batch sequence.
     pub fn sequence(&self) -> u64 {
         self.sequence

@@ -18,6 +18,9 @@ pub mod bench;
 mod clock;
 pub mod config;
 pub mod error;
+/// The fuzz targets' harnesses (`fuzz/` at the repository root); not an API.
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod grpc;
 pub mod metrics;
 pub mod persist;

@@ -403,21 +403,13 @@ impl Ingest {
         buf.clear();
         buf.extend_from_slice(payload);
         let payload = buf.freeze();
-        let batch = match TransitionBatch::decode(payload.clone()) {
-            Ok(b) => b,
-            Err(e) => {
-                let why = format!("undecodable TransitionBatch ({} bytes): {e}", payload.len());
+        match decode_payload(&actor, header.sequence(), payload.clone()) {
+            Ok(batch) => self.insert(request, batch, payload),
+            Err(why) => {
                 self.recycle(payload);
-                return self.reject(&request, &actor, header.sequence(), &why);
+                self.reject(&request, &actor, header.sequence(), &why);
             }
-        };
-        if batch.actor_id != actor || batch.sequence != header.sequence() {
-            let why = format!("request header says actor `{actor}` sequence {}, the batch says actor `{}` sequence {}", header.sequence(), batch.actor_id, batch.sequence);
-            drop(batch);
-            self.recycle(payload);
-            return self.reject(&request, &actor, header.sequence(), &why);
         }
-        self.insert(request, batch, payload);
     }
 
     /// Keeps a payload buffer for the next batch when nothing else holds it any more.
@@ -524,6 +516,19 @@ impl Ingest {
             keep
         });
     }
+}
+
+/// Decodes a request's payload (already copied out of shared memory) into the batch it
+/// carries, borrowing the float columns from `payload`, and checks that the batch is the one
+/// its header announces (`actor`, the header's checked actor id, and `sequence`). `Err` says
+/// why the request is rejected. Validation against the table is the table's (`insert_encoded`).
+pub(crate) fn decode_payload(actor: &str, sequence: u64, payload: Bytes) -> Result<TransitionBatch, String> {
+    let len = payload.len();
+    let batch = TransitionBatch::decode(payload).map_err(|e| format!("undecodable TransitionBatch ({len} bytes): {e}"))?;
+    if batch.actor_id != actor || batch.sequence != sequence {
+        return Err(format!("request header says actor `{actor}` sequence {sequence}, the batch says actor `{}` sequence {}", batch.actor_id, batch.sequence));
+    }
+    Ok(batch)
 }
 
 fn respond(request: &InsertRequest, ack: WireAck) {

@@ -708,18 +708,15 @@ impl Table {
         let cap = self.cfg.capacity as u64;
         let s = &mut *st;
         let table_size = s.size;
-        let n = s.size as f64;
         let mut slots = Vec::with_capacity(rows);
         let mut keys = Vec::with_capacity(rows);
         let mut probabilities = Vec::with_capacity(rows);
         let mut importance_weights = Vec::with_capacity(rows);
-        let mut max_w = 0.0f64;
         if let Some((first_key, len)) = self.uniform_window(s) {
             // Every key in first_key..first_key + len is live with weight 1: draw keys
             // stratified over that range, as the tree walk would over the slots.
             let segment = len as f64 / rows as f64;
             let p = 1.0 / len as f64;
-            let w = (n * p).powf(-beta);
             for i in 0..rows {
                 let u = (i as f64 + s.rng.random::<f64>()) * segment;
                 let key = first_key + (u as u64).min(len - 1);
@@ -727,10 +724,8 @@ impl Table {
                 slots.push(slot);
                 keys.push(key);
                 probabilities.push(p);
-                importance_weights.push(w as f32);
                 s.times_sampled[slot] = s.times_sampled[slot].saturating_add(1);
             }
-            max_w = w;
         } else {
             let total = s.tree.total();
             let segment = total / rows as f64;
@@ -739,25 +734,36 @@ impl Table {
                 let u = (i as f64 + s.rng.random::<f64>()) * segment;
                 let slot = s.tree.find(u.min(total));
                 let p = s.tree.get(slot) / total;
-                let w = (n * p).powf(-beta);
-                max_w = max_w.max(w);
                 slots.push(slot);
                 keys.push(s.key[slot]);
                 probabilities.push(p);
-                importance_weights.push(w as f32);
                 s.times_sampled[slot] = s.times_sampled[slot].saturating_add(1);
-                if self.cfg.max_times_sampled > 0 && s.times_sampled[slot] >= self.cfg.max_times_sampled && s.live[slot] {
-                    s.live[slot] = false;
-                    s.tree.set(slot, 0.0);
-                    s.size -= 1;
+            }
+            // Rows that reached max_times_sampled leave once the whole minibatch is drawn: every
+            // draw is from the distribution its probability describes. Removed as they were
+            // drawn, the later draws of the same minibatch walked a tree that had lost mass
+            // under their stale `total` (biased), and once it had lost all of it returned a
+            // never-live slot with probability 0 (a table of one row with max_times_sampled 1,
+            // asked for 2 rows). A row may so appear more often than max_times_sampled within
+            // one minibatch, never in a later one.
+            if self.cfg.max_times_sampled > 0 {
+                for &slot in &slots {
+                    if s.times_sampled[slot] >= self.cfg.max_times_sampled && s.live[slot] {
+                        s.live[slot] = false;
+                        s.tree.set(slot, 0.0);
+                        s.size -= 1;
+                    }
                 }
             }
         }
-        // Normalise by the minibatch's largest weight (as Acme and Dopamine do), so weights
-        // only ever scale updates down.
-        for w in &mut importance_weights {
-            *w = (*w as f64 / max_w) as f32;
-        }
+        // w_i = (N·P(i))^−β, normalised by the minibatch's largest weight (as Acme and Dopamine
+        // do), so weights only ever scale updates down: w_i / max w = (P_min / P(i))^β. Computed
+        // from the ratio, N cancels and nothing overflows: priorities many orders of magnitude
+        // apart (|TD error| 1e200 beside 1) made (N·P)^−β infinite in f32 and the weights
+        // inf/inf or 0, which `SampledBatch::validate` refuses. A weight below f32's range is
+        // kept at its smallest positive value.
+        let p_min = probabilities.iter().copied().fold(f64::INFINITY, f64::min);
+        importance_weights.extend(probabilities.iter().map(|&p| ((p_min / p).powf(beta) as f32).max(f32::MIN_POSITIVE)));
         // Gathered after drawing: a row removed by max_times_sampled still has its data.
         let (obs, obs_f32le) = gather(&s.obs, d, &slots, floats);
         let (next_obs, next_obs_f32le) = gather(&s.next_obs, d, &slots, floats);
@@ -944,6 +950,48 @@ impl Table {
         }
     }
 
+    /// Every live row with its key, oldest key first, after checking the table's own
+    /// bookkeeping (the count of live rows is `size`, each live key lies in the window of the
+    /// newest `capacity` keys and sits in its slot, each live weight is finite and ≥ 0).
+    /// O(capacity): for the fuzzing harnesses (`crate::fuzzing`) and tests, never a hot path.
+    pub(crate) fn stored_rows(&self) -> Result<Vec<StoredRow>, String> {
+        let st = self.lock();
+        let (d, a, cap) = (self.cfg.obs_dim, self.cfg.act_dim, self.cfg.capacity as u64);
+        let live = st.live.iter().filter(|&&l| l).count() as u64;
+        if live != st.size {
+            return Err(format!("size {} but {live} live slots", st.size));
+        }
+        if st.size > cap {
+            return Err(format!("size {} above capacity {cap}", st.size));
+        }
+        let window = st.next_key.saturating_sub(cap)..st.next_key;
+        let mut rows = Vec::with_capacity(live as usize);
+        for slot in (0..self.cfg.capacity).filter(|&s| st.live[s]) {
+            let key = st.key[slot];
+            if !window.contains(&key) || key % cap != slot as u64 {
+                return Err(format!("live slot {slot} holds key {key}; the window is {window:?}"));
+            }
+            let w = st.tree.get(slot);
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(format!("live slot {slot} has weight {w}"));
+            }
+            rows.push(StoredRow {
+                key,
+                obs: st.obs[slot * d..(slot + 1) * d].to_vec(),
+                action: st.action[slot * a..(slot + 1) * a].to_vec(),
+                reward: st.reward[slot],
+                next_obs: st.next_obs[slot * d..(slot + 1) * d].to_vec(),
+                terminal: st.terminal[slot],
+                truncated: st.truncated[slot],
+                episode_id: st.episode_id[slot],
+                step: st.step[slot],
+                policy_version: st.policy_version[slot],
+            });
+        }
+        rows.sort_by_key(|r| r.key);
+        Ok(rows)
+    }
+
     /// Bytes held by the table's columns and sampler (what the memory target measures).
     pub fn memory_bytes(&self) -> usize {
         let st = self.lock();
@@ -954,6 +1002,21 @@ impl Table {
             + (st.step.len() + st.times_sampled.len()) * 4
             + st.tree.memory_bytes()
     }
+}
+
+/// One stored row as [`Table::stored_rows`] copies it out.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct StoredRow {
+    pub key: u64,
+    pub obs: Vec<f32>,
+    pub action: Vec<f32>,
+    pub reward: f32,
+    pub next_obs: Vec<f32>,
+    pub terminal: bool,
+    pub truncated: bool,
+    pub episode_id: u64,
+    pub step: u32,
+    pub policy_version: u64,
 }
 
 /// A restore in progress: a new table's lock, held from [`Table::restore`] until

@@ -160,7 +160,13 @@ pub(crate) fn parse_priorities_payload(p: &[u8]) -> Result<Vec<(u64, f64)>, Stri
     if p.len() != 4 + n * 16 {
         return Err(format!("corrupt: priorities payload of {} bytes does not hold {n} pairs", p.len()));
     }
-    Ok(p[4..].chunks_exact(16).map(|c| (le_u64(&c[0..8]), f64::from_le_bytes(c[8..16].try_into().unwrap_or([0; 8])))).collect())
+    let pairs: Vec<(u64, f64)> = p[4..].chunks_exact(16).map(|c| (le_u64(&c[0..8]), f64::from_le_bytes(c[8..16].try_into().unwrap_or([0; 8])))).collect();
+    // The table logs only priorities it accepted (finite, ≥ 0: `Table::update_priorities`);
+    // any other value would enter the sampler's sum tree as a NaN or negative weight.
+    if let Some((key, p)) = pairs.iter().find(|(_, p)| !(p.is_finite() && *p >= 0.0)) {
+        return Err(format!("corrupt: priority of key {key} is {p}, never a logged value (finite and ≥ 0)"));
+    }
+    Ok(pairs)
 }
 
 fn le_u32(b: &[u8]) -> u32 {
@@ -860,6 +866,11 @@ mod tests {
         assert_eq!(parse_priorities_payload(&b).unwrap(), vec![(3, 0.5), (u64::MAX, 1e300)]);
         b.pop();
         assert!(parse_priorities_payload(&b).is_err());
+        for bad in [f64::NAN, f64::INFINITY, -0.5] {
+            let mut b = Vec::new();
+            put_priorities_payload(&mut b, &[(3, 0.5), (4, bad)]);
+            assert!(parse_priorities_payload(&b).unwrap_err().contains("priority of key 4"), "{bad} accepted");
+        }
     }
 
     #[test]

@@ -248,6 +248,41 @@ fn importance_weights_and_probabilities_are_exact() {
 }
 
 #[test]
+fn importance_weights_stay_finite_and_positive_when_n_p_to_the_minus_beta_overflows() {
+    // (N·P)^−β leaves f32's range when β is large (a request may set any finite β ≥ 0) or
+    // when priorities lie many orders of magnitude apart; the normalised weights then came
+    // out inf or 0, which `SampledBatch::validate` refuses at the learner (found by the
+    // wal_recovery fuzz target on a recovered table).
+    let mut c = cfg(4);
+    c.sampler = SamplerConfig::Prioritized { alpha: 1.0, beta: 0.4, epsilon: 0.0 };
+    let t = Table::new(c, 3).unwrap();
+    t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    t.update_priorities(&[0, 1, 2, 3], &[4.0, 1.0, 1.0, 1.0]).unwrap();
+    for beta in [200.0, 0.4, 0.0] {
+        let s = t.sample(4, Some(beta), None).unwrap();
+        s.validate(D, 2, 8).unwrap();
+        assert!(s.importance_weights.iter().all(|w| *w > 0.0 && *w <= 1.0), "β {beta}: {:?}", s.importance_weights);
+        assert!(s.keys.contains(&0) && s.keys.iter().any(|&k| k != 0), "β {beta}: draws {:?}", s.keys);
+    }
+}
+
+#[test]
+fn a_minibatch_larger_than_what_max_times_sampled_leaves_draws_only_rows_that_were_stored() {
+    // One row that may be sampled once, a minibatch of 3: rows removed as they were drawn left
+    // the later draws an empty tree, which returned a never-written slot with probability 0
+    // (found by the wal_recovery fuzz target on a recovered table).
+    let mut c = cfg(4);
+    c.max_times_sampled = 1;
+    c.sampler = SamplerConfig::Prioritized { alpha: 0.6, beta: 0.4, epsilon: 1e-6 };
+    let t = Table::new(c, 5).unwrap();
+    t.insert(&batch("a", 1, 7.0, 1), None).unwrap();
+    let s = t.sample(3, None, None).unwrap();
+    s.validate(D, 2, 8).unwrap();
+    assert_eq!((s.keys.as_slice(), s.reward.as_slice()), (&[0, 0, 0][..], &[7.0, 7.0, 7.0][..]));
+    assert_eq!(t.size(), 0, "the row left after the minibatch");
+}
+
+#[test]
 fn items_leave_after_max_times_sampled() {
     let mut c = cfg(10);
     c.max_times_sampled = 2;

@@ -17,7 +17,7 @@
 //! with, then, without the lock, fsyncs the log up to there, writes the file, prunes old
 //! snapshots and deletes log segments no recovery can need. Lock order: table, then log.
 
-mod recovery;
+pub(crate) mod recovery;
 #[cfg(test)]
 mod tests;
 
@@ -76,7 +76,7 @@ impl DurableTable {
     /// when the directory was written by a table of another capacity or dims.
     pub fn open(cfg: TableConfig, persistence: PersistenceConfig, seed: u64) -> Result<(DurableTable, RecoveryReport), ReplayError> {
         persistence.validate()?;
-        let mut table = Table::new(cfg, seed)?;
+        let table = Table::new(cfg, seed)?;
         let Some(dir) = persistence.dir.clone() else {
             return Ok((DurableTable { table: Arc::new(table), persist: None }, RecoveryReport::default()));
         };
@@ -84,7 +84,8 @@ impl DurableTable {
         std::fs::create_dir_all(&wal_dir).map_err(|e| ReplayError::Storage { path: wal_dir.clone(), problem: format!("create: {e}") })?;
         let lock_file = crate::snapshot::lock_dir(&dir)?;
         let store = SnapshotStore::open(dir.join("snapshots"), SNAPSHOTS_KEPT)?;
-        let (wal, report) = recovery::recover(&table, &store, &wal_dir, &persistence)?;
+        let cfg = table.config().clone();
+        let (mut table, wal, report) = recovery::recover(table, || Table::new(cfg.clone(), seed), &store, &wal_dir, &persistence)?;
         let sync = wal.sync_handle();
         let acks_wait_for_fsync = wal.acks_wait_for_fsync();
         let journal = Arc::new(WalJournal { wal: Mutex::new(wal), sync: Arc::clone(&sync), acks_wait_for_fsync, _lock_file: lock_file });

@@ -76,12 +76,40 @@ fn checkpoint_of(snap: SnapshotData) -> TableCheckpoint {
 }
 
 /// Rebuilds `table` (new and empty) from the newest usable snapshot and the log in `wal_dir`;
-/// returns the log reopened for appending after the last valid record.
-pub(super) fn recover(table: &Table, store: &SnapshotStore, wal_dir: &Path, p: &PersistenceConfig) -> Result<(Wal, RecoveryReport), ReplayError> {
+/// returns it with the log reopened for appending after the last valid record.
+///
+/// A record that passes its checksum but will not replay (it does not decode, or its keys do
+/// not follow on) cuts the log there; when that cut falls before the chosen snapshot's LSN, the
+/// snapshot covers records the log no longer holds, so it is set aside ("ahead", as the scan
+/// would have) and recovery starts over on `fresh()` without it. Otherwise the reopened log
+/// would hand out again LSNs the snapshot claims to cover, and the next recovery would pass
+/// the snapshot over (or find it disagreeing with the new records) and restore another table.
+pub(crate) fn recover(table: Table, fresh: impl Fn() -> Result<Table, ReplayError>, store: &SnapshotStore, wal_dir: &Path, p: &PersistenceConfig) -> Result<(Table, Wal, RecoveryReport), ReplayError> {
+    let t0 = Instant::now();
+    let mut skipped = Vec::new();
+    let mut table = table;
+    loop {
+        // Each retry has set one more snapshot aside, so this ends.
+        if let Some((wal, mut report)) = recover_once(&table, store, wal_dir, p, &mut skipped)? {
+            report.elapsed = t0.elapsed();
+            // A snapshot passed over without being renamed (before a gap) is listed once.
+            let mut seen = std::collections::HashSet::new();
+            report.skipped_snapshots.retain(|f| seen.insert(f.path.clone()));
+            return Ok((table, wal, report));
+        }
+        table = fresh()?;
+    }
+}
+
+/// One attempt of [`recover`]: `None` when the chosen snapshot turned out to lie past the end
+/// of the replayable log (then set aside and added to `skipped`, which carries the snapshots
+/// passed over into the next attempt's report).
+fn recover_once(table: &Table, store: &SnapshotStore, wal_dir: &Path, p: &PersistenceConfig, skipped: &mut Vec<StorageFault>) -> Result<Option<(Wal, RecoveryReport)>, ReplayError> {
     let t0 = Instant::now();
     let cfg = table.config();
     let (cap, d, a) = (cfg.capacity, cfg.obs_dim, cfg.act_dim);
-    let mut report = RecoveryReport::default();
+    let mut report = RecoveryReport { skipped_snapshots: std::mem::take(skipped), ..RecoveryReport::default() };
+    let carried = report.skipped_snapshots.len();
     let mut scan = wal::scan(wal_dir)?;
     let (log_start, log_end) = (scan.start_lsn(), scan.end_lsn());
 
@@ -120,7 +148,7 @@ pub(super) fn recover(table: &Table, store: &SnapshotStore, wal_dir: &Path, p: &
             }
         }
     }
-    for f in &report.skipped_snapshots {
+    for f in &report.skipped_snapshots[carried..] {
         tracing::warn!(table = %cfg.name, file = %f.path.display(), reason = %f.reason, "snapshot skipped");
     }
 
@@ -196,6 +224,20 @@ pub(super) fn recover(table: &Table, store: &SnapshotStore, wal_dir: &Path, p: &
         kind => Err(Ok(format!("corrupt: unknown record kind {kind}"))),
     })?;
 
+    // A record at or below the snapshot's LSN would not replay: the log now ends before what
+    // the snapshot covers. Set the snapshot aside and start over without it (see `recover`).
+    let replay_end = scan.end_lsn().unwrap_or(0);
+    if let Some(path) = snapshot_path.as_ref().filter(|_| scan.fault.is_some() && replay_end < snap_lsn) {
+        drop(restore);
+        let why = scan.fault.as_ref().map(|f| f.to_string()).unwrap_or_default();
+        let fault = StorageFault { path: path.clone(), offset: 0, reason: format!("covers the log up to LSN {snap_lsn} but its replayable records end at {replay_end} ({why})") };
+        tracing::warn!(table = %cfg.name, file = %path.display(), reason = %fault.reason, "snapshot set aside; recovering again without it");
+        report.skipped_snapshots.push(fault);
+        store.set_aside(path, "ahead")?;
+        *skipped = report.skipped_snapshots;
+        return Ok(None);
+    }
+
     // A live row whose data the log no longer holds cannot be served: finish drops it, loudly.
     let restored = restore.finish();
     let end = scan.end_lsn().unwrap_or(0).max(snap_lsn);
@@ -219,5 +261,5 @@ pub(super) fn recover(table: &Table, store: &SnapshotStore, wal_dir: &Path, p: &
     }
     report.elapsed = t0.elapsed();
     tracing::info!(table = %cfg.name, rows = report.rows, records = replayed, after_snapshot, snapshot_lsn = snap_lsn, ms = report.elapsed.as_millis() as u64, "table restored");
-    Ok((wal, report))
+    Ok(Some((wal, report)))
 }
