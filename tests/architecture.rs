@@ -28,13 +28,24 @@ const ALLOWED: &[(&str, &[&str])] = &[
 ];
 
 fn metadata(no_deps: bool) -> Value {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let mut cmd = Command::new(cargo);
-    cmd.args(["metadata", "--format-version", "1", "--locked", "--offline"]).current_dir(env!("CARGO_MANIFEST_DIR"));
-    if no_deps {
-        cmd.arg("--no-deps");
+    let run = |offline: bool| {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let mut cmd = Command::new(cargo);
+        cmd.args(["metadata", "--format-version", "1", "--locked"]).current_dir(env!("CARGO_MANIFEST_DIR"));
+        if offline {
+            cmd.arg("--offline");
+        }
+        if no_deps {
+            cmd.arg("--no-deps");
+        }
+        cmd.output().expect("run cargo metadata")
+    };
+    // The whole resolve names crates of other platforms (anstyle-wincon, for Windows) that a
+    // build here never downloads: offline first, then, on a fresh cargo home, from the registry.
+    let mut out = run(true);
+    if !out.status.success() {
+        out = run(false);
     }
-    let out = cmd.output().expect("run cargo metadata");
     assert!(out.status.success(), "cargo metadata failed: {}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout).expect("cargo metadata JSON")
 }
