@@ -36,7 +36,14 @@ command -v docker >/dev/null || { echo "images.sh: docker not found" >&2; exit 1
 # A LIBTORCH already set in the environment wins, as in .cargo/config.toml (no install then).
 if [ -z "${LIBTORCH:-}" ]; then bash scripts/setup-torch.sh; fi
 echo "images.sh: building the binaries ($profile)" >&2
-cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay --bins
+if [ "$profile" = dev ]; then
+    # The test suite's own binaries (tests/compose_drill.rs): the suite's target selection, so
+    # this finds them built. `-p …` would resolve features differently and rerun ring's build
+    # script, making the next workspace build recompile everything (gigabytes of CI's disk).
+    cargo build --locked --workspace --all-targets
+else
+    cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay --bins
+fi
 
 # The user every image runs as (not root): the uid and gid distroless images call `nonroot`.
 # It owns /data and /train (the replay's and the learner's volumes, which take their owner from

@@ -87,7 +87,7 @@ else
         say "torch: found $current, want $TORCH_VERSION; reinstalling"
     fi
     say "torch: pip install torch==$TORCH_VERSION (CUDA wheel + nvidia-* deps, several GB; takes a few minutes)"
-    "$venv_python" -m pip install --disable-pip-version-check --no-input "torch==$TORCH_VERSION" ||
+    "$venv_python" -m pip install --disable-pip-version-check --no-input --no-cache-dir "torch==$TORCH_VERSION" ||
         die "pip install torch==$TORCH_VERSION failed (is PyPI reachable? is there ~6 GB free under $torch_root?)"
     current="$(installed_torch_version)"
     version_matches "$current" || die "after pip install, torch reports version '${current:-none}', not $TORCH_VERSION"

@@ -29,7 +29,11 @@ fn replay_bin() -> PathBuf {
     let replay = actor.with_file_name("mapless-replay");
     BUILT.get_or_init(|| {
         let mut cmd = Command::new(env!("CARGO"));
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "-p", "mapless-replay", "--bin", "mapless-replay"]);
+        // The same target selection as `cargo test --workspace --all-targets` (./test.sh), so
+        // this only relinks: `-p mapless-replay` resolves features differently and reruns ring's
+        // build script, which then makes the next workspace build recompile and relink every
+        // crate and test above it (gigabytes of disk; it filled CI's).
+        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
         if actor.parent().and_then(Path::file_name).is_some_and(|n| n == "release") {
             cmd.arg("--release");
         }

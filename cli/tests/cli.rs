@@ -72,7 +72,9 @@ fn bench_learner_json_prints_rates_the_f32_ceiling_and_both_update_paths() {
     let dir = std::path::Path::new(env!("CARGO_BIN_EXE_mapless")).parent().unwrap().to_path_buf();
     if !dir.join("mapless-learner").exists() {
         let mut cmd = Command::new(env!("CARGO"));
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "-p", "mapless-learner", "--bins"]);
+        // `--workspace --all-targets`, as ./test.sh: `-p` would resolve features differently
+        // and make the next workspace build recompile everything (actor/tests/register.rs).
+        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
         if dir.file_name().is_some_and(|n| n == "release") {
             cmd.arg("--release");
         }
