@@ -195,12 +195,20 @@ impl State {
         key < self.next_key && self.live[slot] && self.key[slot] == key
     }
 
-    /// Sets the priorities of keys still stored (weight (p + ε)^α); returns how many.
+    /// Sets the priorities of keys still stored (weight (p + ε)^α, kept within
+    /// [`MIN_PRIORITY_WEIGHT`, f64::MAX / 2·capacity]); returns how many.
+    ///
+    /// The bounds keep the sum tree's arithmetic finite and its mass positive: with α > 1 a
+    /// large finite priority made (p + ε)^α infinite (1e200² in f64) and the total inf, so
+    /// every probability was NaN; with ε = 0 and every stored priority 0 the total was 0 and
+    /// the draws 0/0. A weight at the floor is drawn only when nothing else has mass, then
+    /// uniformly, as Reverb's prioritized selector does with all priorities zero.
     fn apply_priorities(&mut self, pairs: &[(u64, f64)], alpha: f64, epsilon: f64, cap: u64) -> usize {
+        let ceiling = f64::MAX / (2.0 * cap as f64);
         let mut updated = 0;
         for &(k, p) in pairs {
             if self.holds(k, cap) {
-                let w = (p + epsilon).powf(alpha);
+                let w = (p + epsilon).powf(alpha).clamp(MIN_PRIORITY_WEIGHT, ceiling);
                 self.tree.set((k % cap) as usize, w);
                 self.max_weight = self.max_weight.max(w);
                 updated += 1;
@@ -209,6 +217,11 @@ impl State {
         updated
     }
 }
+
+/// The smallest sum-tree weight a prioritized row gets ([`State::apply_priorities`]): far below
+/// any weight (p + ε)^α of a row with a positive priority that the learner sends, so such a row
+/// is drawn only when no row has more.
+const MIN_PRIORITY_WEIGHT: f64 = 1e-300;
 
 /// Index of [`Table::storage_refusals`]' first dimension.
 const INSERT: usize = 0;

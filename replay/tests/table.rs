@@ -267,6 +267,40 @@ fn importance_weights_stay_finite_and_positive_when_n_p_to_the_minus_beta_overfl
 }
 
 #[test]
+fn priorities_whose_weights_overflow_or_vanish_still_give_finite_minibatches() {
+    // α > 1 and a large finite priority: (p + ε)^α was inf in f64, the tree's total inf and
+    // every probability NaN.
+    let mut c = cfg(4);
+    c.sampler = SamplerConfig::Prioritized { alpha: 2.0, beta: 0.4, epsilon: 0.0 };
+    let t = Table::new(c, 3).unwrap();
+    t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    t.update_priorities(&[0, 1, 2, 3], &[1e200, 1e300, 1.0, 1.0]).unwrap();
+    let s = t.sample(64, None, None).unwrap();
+    s.validate(D, 2, 400).unwrap();
+    assert!(s.probabilities.iter().all(|p| p.is_finite() && *p >= 0.0), "{:?}", s.probabilities);
+    assert!(s.importance_weights.iter().all(|w| *w > 0.0 && *w <= 1.0), "{:?}", s.importance_weights);
+    // Both huge priorities are clamped to one ceiling: they share the mass; the others have
+    // none to speak of.
+    assert!(s.keys.iter().all(|&k| k < 2) && s.keys.contains(&0) && s.keys.contains(&1), "{:?}", s.keys);
+
+    // ε = 0 and every priority 0: the total was 0 and every draw 0/0. Now each row keeps the
+    // floor weight, so the draws are uniform over the stored rows.
+    let mut c = cfg(4);
+    c.sampler = SamplerConfig::Prioritized { alpha: 0.6, beta: 0.4, epsilon: 0.0 };
+    let t = Table::new(c, 4).unwrap();
+    t.insert(&batch("a", 1, 0.0, 4), None).unwrap();
+    t.update_priorities(&[0, 1, 2, 3], &[0.0; 4]).unwrap();
+    let s = t.sample(400, None, None).unwrap();
+    s.validate(D, 2, 400).unwrap();
+    for k in 0..4 {
+        let n = s.keys.iter().filter(|&&x| x == k).count();
+        assert!((80..=120).contains(&n), "key {k} drawn {n} times of 400: {:?}", s.keys);
+    }
+    assert!(s.probabilities.iter().all(|p| (p - 0.25).abs() < 1e-9), "{:?}", &s.probabilities[..4]);
+    assert!(s.importance_weights.iter().all(|w| *w == 1.0));
+}
+
+#[test]
 fn a_minibatch_larger_than_what_max_times_sampled_leaves_draws_only_rows_that_were_stored() {
     // One row that may be sampled once, a minibatch of 3: rows removed as they were drawn left
     // the later draws an empty tree, which returned a never-written slot with probability 0
