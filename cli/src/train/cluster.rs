@@ -133,7 +133,7 @@ impl Cluster {
         let actor_cfg = ActorConfig {
             map: cfg.map.clone(),
             worlds_per_family: cfg.worlds_per_family,
-            env: cfg.env.clone(),
+            env: cfg.actor_env(),
             vehicles: cfg.actors.vehicles,
             exploration: ExplorationSettings { warmup_steps: if resuming { 0 } else { cfg.actors.warmup_steps }, noise: cfg.noise() },
             batch_rows: cfg.actors.batch_rows,

@@ -95,13 +95,20 @@ pub struct ActorsSettings {
     pub batch_rows: usize,
     /// Uniform random vehicle-steps at the start of each actor process.
     pub warmup_steps: u64,
+    /// Clearance of the training episodes' starts, in place of `env.episode.start_clearance_m`
+    /// (which every evaluation keeps: the protocol's starts do not move with training's); none:
+    /// the same as evaluations. Starts stay escapable (`env.episode.start_escapable`) [ours: the
+    /// paper starts at random poses and states no clearance; 0.1 m puts about one training start
+    /// in six within half a metre of a wall, the corners and dead ends where env1 agents
+    /// collided on env3 (docs/simulator.md, "Training starts")].
+    pub start_clearance_m: Option<f64>,
     // Exploration noise has one home, the algorithm's section (`learner.ddpg.exploration`,
     // `learner.td3.exploration`, with their sources); the actors are handed it. SAC samples.
 }
 
 impl Default for ActorsSettings {
     fn default() -> Self {
-        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500 }
+        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, start_clearance_m: None }
     }
 }
 
@@ -213,6 +220,16 @@ pub(crate) fn default_table() -> TableConfig {
 }
 
 impl TrainConfig {
+    /// The simulator settings the actors train with: `env`, with the training starts'
+    /// clearance (`actors.start_clearance_m`) where one is set.
+    pub fn actor_env(&self) -> EnvConfig {
+        let mut env = self.env.clone();
+        if let Some(c) = self.actors.start_clearance_m {
+            env.episode.start_clearance_m = c;
+        }
+        env
+    }
+
     /// Sets the table's dims from the sensor, checks everything.
     pub fn resolve(mut self) -> Result<TrainConfig> {
         self.env.validate()?;
@@ -237,6 +254,11 @@ impl TrainConfig {
         self.learner.validate()?;
         if self.actors.count == 0 || self.actors.vehicles == 0 || self.actors.batch_rows == 0 {
             bail!("actors.count, actors.vehicles and actors.batch_rows must be >= 1");
+        }
+        if let Some(c) = self.actors.start_clearance_m
+            && !(c.is_finite() && c >= 0.0)
+        {
+            bail!("actors.start_clearance_m must be a finite number >= 0 (metres), not {c}");
         }
         if self.stop.window == 0 {
             bail!("stop.window must be >= 1");
@@ -732,5 +754,19 @@ mod tests {
         // ... and with the paper's ratio too, the limiter's slack must then grow: a clear error.
         let err = load_config(&train_args("env1-sac", &["actors.vehicles=200", "replay.rate_limiter.samples_per_insert=128"])).unwrap_err();
         assert!(format!("{err:#}").contains("error_buffer"), "{err:#}");
+    }
+
+    #[test]
+    fn training_starts_take_their_own_clearance_and_evaluations_keep_the_protocols() {
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.start_clearance_m=0.25"])).unwrap();
+        assert_eq!(cfg.actor_env().episode.start_clearance_m, 0.25);
+        assert_eq!(cfg.env.episode.start_clearance_m, EnvConfig::default().episode.start_clearance_m);
+        assert_eq!(cfg.actor_env().episode.start_escapable, cfg.env.episode.start_escapable);
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.start_clearance_m=null"])).unwrap();
+        assert_eq!(cfg.actor_env(), cfg.env);
+        for bad in ["-0.1", ".nan", ".inf"] {
+            let err = load_config(&train_args("env1-sac", &[&format!("actors.start_clearance_m={bad}")])).unwrap_err();
+            assert!(format!("{err:#}").contains("actors.start_clearance_m"), "{bad}: {err:#}");
+        }
     }
 }
