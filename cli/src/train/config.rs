@@ -98,8 +98,8 @@ pub struct ActorsSettings {
     /// Clearance of the training episodes' starts, in place of `env.episode.start_clearance_m`
     /// (which every evaluation keeps: the protocol's starts do not move with training's); none:
     /// the same as evaluations. Starts stay escapable (`env.episode.start_escapable`) [ours: the
-    /// paper starts at random poses and states no clearance; 0.1 m puts about one training start
-    /// in six within half a metre of a wall, the corners and dead ends where env1 agents
+    /// paper starts at random poses and states no clearance; 0.1 m admits starts within half a
+    /// metre of a wall, as in the corners and dead ends where env1 agents trained from 0.5 m
     /// collided on env3 (docs/simulator.md, "Training starts")].
     pub start_clearance_m: Option<f64>,
     // Exploration noise has one home, the algorithm's section (`learner.ddpg.exploration`,
