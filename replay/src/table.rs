@@ -202,7 +202,7 @@ impl State {
     /// large finite priority made (p + ε)^α infinite (1e200² in f64) and the total inf, so
     /// every probability was NaN; with ε = 0 and every stored priority 0 the total was 0 and
     /// the draws 0/0. A weight at the floor is drawn only when nothing else has mass, then
-    /// uniformly, as Reverb's prioritized selector does with all priorities zero.
+    /// uniformly.
     fn apply_priorities(&mut self, pairs: &[(u64, f64)], alpha: f64, epsilon: f64, cap: u64) -> usize {
         let ceiling = f64::MAX / (2.0 * cap as f64);
         let mut updated = 0;
