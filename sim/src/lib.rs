@@ -25,6 +25,7 @@ pub mod env;
 pub mod eqs_analysis;
 pub mod error;
 pub mod explore;
+pub mod fuzzing;
 mod image;
 pub mod map;
 pub mod paper;

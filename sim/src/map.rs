@@ -187,12 +187,18 @@ impl Map {
     /// Loads a map file, telling the two formats apart by their keys.
     pub fn load(path: &Path) -> Result<Map> {
         let text = std::fs::read_to_string(path).map_err(|e| map_err(path, format!("cannot read: {e}")))?;
-        let probe: serde_yaml::Value = serde_yaml::from_str(&text).map_err(|e| map_err(path, format!("not valid YAML: {e}")))?;
+        Self::parse(&text, path, |image| std::fs::read(image))
+    }
+
+    /// [`Map::load`] on a map file's text in hand (`path` names it in errors and places a ROS
+    /// map's image): `read_image` returns the bytes of the image file the text names.
+    pub fn parse(text: &str, path: &Path, read_image: impl FnOnce(&Path) -> std::io::Result<Vec<u8>>) -> Result<Map> {
+        let probe: serde_yaml::Value = serde_yaml::from_str(text).map_err(|e| map_err(path, format!("not valid YAML: {e}")))?;
         let has = |k: &str| probe.get(k).is_some();
         if has("format") {
-            Self::from_vector_yaml(&text, path)
+            Self::from_vector_yaml(text, path)
         } else if has("image") {
-            Self::from_ros_yaml(&text, path)
+            Self::from_ros_yaml_with(text, path, read_image)
         } else {
             Err(map_err(path, format!("neither a vector map (no `format: {VECTOR_FORMAT}`) nor a ROS map_server map (no `image:`)")))
         }
@@ -391,6 +397,11 @@ impl Map {
 
     /// Parses a ROS map_server YAML and its image.
     pub fn from_ros_yaml(text: &str, path: &Path) -> Result<Map> {
+        Self::from_ros_yaml_with(text, path, |image| std::fs::read(image))
+    }
+
+    /// [`Map::from_ros_yaml`], with the image's bytes from `read_image`.
+    fn from_ros_yaml_with(text: &str, path: &Path, read_image: impl FnOnce(&Path) -> std::io::Result<Vec<u8>>) -> Result<Map> {
         let meta: RosMapYaml = serde_yaml::from_str(text).map_err(|e| map_err(path, e.to_string()))?;
         if !(meta.resolution.is_finite() && meta.resolution > 0.0) {
             return Err(map_err(path, format!("resolution must be > 0, got {}", meta.resolution)));
@@ -415,7 +426,8 @@ impl Map {
             return Err(map_err(path, format!("unknown mode `{mode}` (trinary, scale or raw)")));
         }
         let img_path = path.parent().unwrap_or(Path::new(".")).join(&meta.image);
-        let img = crate::image::read_gray(&img_path).map_err(|problem| map_err(&img_path, problem))?;
+        let bytes = read_image(&img_path).map_err(|e| map_err(&img_path, format!("cannot read image: {e}")))?;
+        let img = crate::image::decode_gray(&bytes).map_err(|problem| map_err(&img_path, problem))?;
         let (w, h) = (img.width, img.height);
         // Image row 0 is the top of the map; grid row 0 is the bottom.
         let mut free = vec![false; w * h];
