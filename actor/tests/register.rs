@@ -3,6 +3,9 @@
 //! under distinct actor ids; a name gets its slot back from a restarted actor and from a
 //! restarted replay (its data directory keeps the slots).
 
+#[path = "../../tests/common/workspace_build.rs"]
+mod workspace_build;
+
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Read as _};
 use std::net::SocketAddr;
@@ -24,22 +27,9 @@ const STEPS: u64 = 96;
 /// the replay). Brought up to date once per test binary, not only built when missing: a stale
 /// replay left by an older checkout would answer the newer RPCs with UNIMPLEMENTED.
 fn replay_bin() -> PathBuf {
-    static BUILT: std::sync::OnceLock<()> = std::sync::OnceLock::new();
     let actor = PathBuf::from(env!("CARGO_BIN_EXE_mapless-actor"));
-    let replay = actor.with_file_name("mapless-replay");
-    BUILT.get_or_init(|| {
-        let mut cmd = Command::new(env!("CARGO"));
-        // The same target selection as `cargo test --workspace --all-targets` (./test.sh), so
-        // this only relinks: `-p mapless-replay` resolves features differently and reruns ring's
-        // build script, which then makes the next workspace build recompile and relink every
-        // crate and test above it (gigabytes of disk; it filled CI's).
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
-        if actor.parent().and_then(Path::file_name).is_some_and(|n| n == "release") {
-            cmd.arg("--release");
-        }
-        assert!(cmd.status().expect("cargo runs").success(), "building mapless-replay failed");
-    });
-    replay
+    workspace_build::build_workspace_once(actor.parent().unwrap());
+    actor.with_file_name("mapless-replay")
 }
 
 /// A replay process; killed when dropped (a failed assertion).

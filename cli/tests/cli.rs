@@ -1,6 +1,9 @@
 //! The `mapless` binary end to end: maps pictures, a rollout, the sim and learner benchmarks' JSON lines,
 //! and clear errors for bad input.
 
+#[path = "../../tests/common/workspace_build.rs"]
+mod workspace_build;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -67,19 +70,9 @@ fn bench_sim_json_prints_one_object_per_scan_preset() {
 
 #[test]
 fn bench_learner_json_prints_rates_the_f32_ceiling_and_both_update_paths() {
-    // `bench learner` runs the `mapless-learner` beside `mapless` (./test.sh builds it; a
-    // `cargo test -p mapless-cli` alone builds it here).
+    // `bench learner` runs the `mapless-learner` beside `mapless`.
     let dir = std::path::Path::new(env!("CARGO_BIN_EXE_mapless")).parent().unwrap().to_path_buf();
-    if !dir.join("mapless-learner").exists() {
-        let mut cmd = Command::new(env!("CARGO"));
-        // `--workspace --all-targets`, as ./test.sh: `-p` would resolve features differently
-        // and make the next workspace build recompile everything (actor/tests/register.rs).
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
-        if dir.file_name().is_some_and(|n| n == "release") {
-            cmd.arg("--release");
-        }
-        assert!(cmd.status().expect("cargo runs").success(), "building mapless-learner failed");
-    }
+    workspace_build::build_workspace_once(&dir);
     let o = mapless(&["bench", "learner", "--json", "--seconds", "0.1", "--threads", "1", "--algos", "sac", "--autograd"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let lines: Vec<serde_json::Value> = String::from_utf8(o.stdout).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();

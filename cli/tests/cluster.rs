@@ -4,6 +4,9 @@
 //! versions); `kill -9` of an actor leaves training running and the supervisor restarts it;
 //! an interrupted run resumed with `--resume` continues from its checkpoint and its curve.
 
+#[path = "../../tests/common/workspace_build.rs"]
+mod workspace_build;
+
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -13,21 +16,10 @@ use mapless_proto::v1::replay_service_client::ReplayServiceClient;
 use mapless_proto::v1::{ProtocolVersion, ServerInfoRequest, ServerInfoResponse};
 
 /// `mapless`, with `mapless-actor`, `mapless-replay` and `mapless-learner` beside it, brought up
-/// to date once per test binary with the same target selection as ./test.sh (so this only
-/// relinks, or does nothing): checking only that they exist would run a stale binary left by an
-/// older checkout.
+/// to date once per test binary.
 fn mapless() -> PathBuf {
-    static BUILT: std::sync::OnceLock<()> = std::sync::OnceLock::new();
     let exe = PathBuf::from(env!("CARGO_BIN_EXE_mapless"));
-    let dir = exe.parent().unwrap().to_path_buf();
-    BUILT.get_or_init(|| {
-        let mut cmd = Command::new(env!("CARGO"));
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
-        if dir.file_name().is_some_and(|n| n == "release") {
-            cmd.arg("--release");
-        }
-        assert!(cmd.status().expect("cargo runs").success(), "building the cluster binaries failed");
-    });
+    workspace_build::build_workspace_once(exe.parent().unwrap());
     exe
 }
 

@@ -7,6 +7,9 @@
 //! kill processes and count dead-node cleanups, which any other iceoryx2 node in this
 //! process could do for them).
 
+#[path = "../../tests/common/workspace_build.rs"]
+mod workspace_build;
+
 #[path = "../examples/shm_common/mod.rs"]
 mod shm_common;
 
@@ -15,7 +18,7 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::mpsc::{Receiver, channel};
-use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use mapless_net::shm::{Ack, ShmConfig, ShmError, ShmWriter};
@@ -93,29 +96,11 @@ fn in_secs(s: u64) -> Instant {
     Instant::now() + Duration::from_secs(s)
 }
 
-/// Path of an example binary, built on first use with the profile this test runs under.
+/// Path of an example binary, brought up to date once with the profile this test runs under.
 fn example(name: &str) -> PathBuf {
-    static BUILT: OnceLock<Result<(), String>> = OnceLock::new();
     let exe = std::env::current_exe().unwrap();
     let profile_dir = exe.parent().and_then(|deps| deps.parent()).unwrap().to_path_buf();
-    let built = BUILT.get_or_init(|| {
-        let mut cmd = Command::new(env!("CARGO"));
-        // The same target selection as `cargo test --workspace --all-targets` (./test.sh), so
-        // features resolve identically and this only relinks; `-p mapless-replay --example …`
-        // would unify features differently and rebuild much of the dependency tree (minutes).
-        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).args(["build", "--quiet", "--workspace", "--all-targets"]);
-        if profile_dir.file_name().is_some_and(|n| n == "release") {
-            cmd.arg("--release");
-        }
-        match cmd.status() {
-            Ok(s) if s.success() => Ok(()),
-            Ok(s) => Err(format!("cargo build of the shm examples failed: {s}")),
-            Err(e) => Err(format!("cannot run cargo: {e}")),
-        }
-    });
-    if let Err(e) = built {
-        panic!("{e}");
-    }
+    workspace_build::build_workspace_once(&profile_dir);
     profile_dir.join("examples").join(name)
 }
 
