@@ -367,8 +367,14 @@ impl Map {
         if !(resolution_m.is_finite() && resolution_m > 0.0) {
             return Err(SimError::InvalidConfig(format!("resolution must be > 0, got {resolution_m}")));
         }
-        let w = (self.bounds.width() / resolution_m).ceil() as usize;
-        let h = (self.bounds.height() / resolution_m).ceil() as usize;
+        // Pixels to cover a side: the ceiling, except that a side that is a whole number of
+        // pixels up to rounding stays that number (3 cells of 0.4 m are 1.2000000000000002 m,
+        // and a grid map rasterised at its own resolution must keep its size).
+        let pixels = |side_m: f64| {
+            let n = side_m / resolution_m;
+            if (n - n.round()).abs() <= 1e-9 * n.max(1.0) { n.round() as usize } else { n.ceil() as usize }
+        };
+        let (w, h) = (pixels(self.bounds.width()), pixels(self.bounds.height()));
         if w == 0 || h == 0 || w > 20_000 || h > 20_000 {
             return Err(SimError::InvalidConfig(format!("raster of {w}x{h} pixels is out of range")));
         }

@@ -215,3 +215,24 @@ fn a_wall_thickness_that_cannot_be_built_is_a_clear_error() {
     let err = Map::from_vector_yaml(along, "along.yaml".as_ref()).unwrap_err().to_string();
     assert!(err.contains("along.yaml") && err.contains("obstacle 0 (wall)") && err.contains("outside the map bounds"), "{err}");
 }
+
+/// Found by the `map_files` fuzz target: 3 cells of 0.4 m are 1.2000000000000002 m, and the
+/// raster at the map's own resolution took the ceiling of 3.0000000000000004, a column more than
+/// the map has; a ROS map written back (`Map::write_ros`) loaded as a different map.
+#[test]
+fn a_ros_map_written_back_at_its_own_resolution_keeps_its_size() {
+    let d = dir("round-trip");
+    for (res, w, h) in [(0.4, 3, 2), (0.1, 7, 3), (0.05, 13, 11), (0.3, 10, 10)] {
+        let mut pgm = format!("P5\n{w} {h}\n255\n").into_bytes();
+        pgm.extend((0..w * h).map(|k| if k % 3 == 0 { 0u8 } else { 254 }));
+        std::fs::write(d.join("m.pgm"), pgm).unwrap();
+        std::fs::write(d.join("m.yaml"), format!("image: m.pgm\nresolution: {res}\norigin: [0.0, 0.0, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")).unwrap();
+        let map = Map::load(&d.join("m.yaml")).unwrap();
+        let (rw, rh, px) = map.rasterize(res).unwrap();
+        assert_eq!((rw, rh), (w, h), "raster of a {w}x{h} map at {res} m");
+        let again = Map::load(&map.write_ros(&d.join("again"), res).unwrap()).unwrap();
+        let g = again.grid.as_ref().unwrap();
+        assert_eq!((g.width, g.height), (w, h), "{w}x{h} at {res} m, written back");
+        assert_eq!(again.rasterize(res).unwrap().2, px, "{w}x{h} at {res} m, written back");
+    }
+}
