@@ -38,7 +38,7 @@ pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria) -> bool {
     if stop.average_return.is_none() && stop.average_steps.is_none() {
         return false;
     }
-    if rows.len() < stop.window {
+    if rows.len() < stop.window || stop.min_episodes.is_some_and(|m| (rows.len() as u64) < m) {
         return false;
     }
     let (r, s) = averages(rows, stop.window);
@@ -217,6 +217,18 @@ mod tests {
         assert!(averages_met(&rows, &only_return));
         let none = StopCriteria { average_return: None, average_steps: None, ..stop };
         assert!(!averages_met(&rows, &none), "no goals: never stops on averages");
+    }
+
+    #[test]
+    fn no_average_is_judged_before_the_episode_floor() {
+        let stop = StopCriteria { window: 2, average_return: Some(300.0), min_episodes: Some(4), ..StopCriteria::default() };
+        let mut rows = vec![row(1, 400.0, 1000), row(2, 400.0, 1000), row(3, 400.0, 1000)];
+        assert!(!averages_met(&rows, &stop), "3 episodes, the floor is 4");
+        rows.push(row(4, 400.0, 1000));
+        assert!(averages_met(&rows, &stop));
+        let mut rules = StopRules::new(&stop, 0);
+        assert_eq!(rules.averages(&rows[..3], || at(3)), Averages::Short);
+        assert_eq!(rules.averages(&rows, || at(4)), Averages::Met);
     }
 
     #[test]
