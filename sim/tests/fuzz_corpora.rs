@@ -59,7 +59,10 @@ fn seeds() -> Vec<(String, Vec<u8>)> {
     let cave = generate(Family::Cave, 3).unwrap();
     let (yaml, pgm) = ros(&cave, 0.5);
     out.push(("cave-3-ros-pgm".into(), input(&yaml, &pgm)));
-    out.push(("ros-raw-p2".into(), input("image: m.pgm\nresolution: 1.0\norigin: [0.0, 0.0, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: raw\n", b"P2\n3 2\n100\n0 0 100\n0 100 0\n")));
+    out.push((
+        "ros-raw-p2".into(),
+        input("image: m.pgm\nresolution: 1.0\norigin: [0.0, 0.0, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\nmode: raw\n", b"P2\n3 2\n100\n0 0 100\n0 100 0\n"),
+    ));
     out
 }
 
