@@ -33,6 +33,7 @@ mod policies;
 mod protocol;
 mod reproduce;
 mod signals;
+mod soak;
 mod train;
 mod worlds;
 
@@ -316,6 +317,11 @@ enum BenchCmd {
         #[arg(long)]
         json: bool,
     },
+    /// Many streams for a long time: the replay (persistence on) and the learner under S paced
+    /// insert streams, K samplers with priority updates and W weights subscribers; rows/s,
+    /// latency p50/p99, each process's memory, threads and open files every few seconds.
+    /// Fails if a stream stalls, a request fails or a resource grows after the warm-up.
+    Soak(soak::SoakArgs),
 }
 
 fn main() {
@@ -355,6 +361,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Bench { cmd: BenchCmd::Replay { seconds, memory_rows, json, .. } } => bench_replay(seconds, memory_rows, json),
         Cmd::Bench { cmd: BenchCmd::Learner { args } } => bench_learner(&args),
         Cmd::Bench { cmd: BenchCmd::E2e { actors, seconds, vehicles, set, json } } => bench_e2e(&actors, seconds, vehicles, &set, json),
+        Cmd::Bench { cmd: BenchCmd::Soak(args) } => soak::soak(args),
     }
 }
 

@@ -23,10 +23,12 @@ pub mod curves;
 mod error;
 mod font;
 mod picture;
+pub mod series;
 mod sheet;
 
 pub use canvas::{Canvas, default_px_per_m};
 pub use curves::{CurvePoint, CurveStyle, training_curves_png};
 pub use error::{PlotError, Result};
 pub use font::FONT_FAMILY;
+pub use series::{Series, SeriesPanel, time_series_png};
 pub use sheet::contact_sheet_png;

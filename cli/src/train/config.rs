@@ -414,7 +414,6 @@ pub(crate) fn section_entry<'a>(map: &'a mut serde_yaml::Mapping, path: &[&str])
 }
 
 /// A built-in preset (or a preset file) as a `TrainConfig`, unresolved.
-#[cfg(test)]
 pub fn preset_config(preset: &str) -> Result<TrainConfig> {
     parse_config(serde_yaml::from_str(&preset_text(preset)?).context("preset YAML")?)
 }

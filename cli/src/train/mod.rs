@@ -38,10 +38,10 @@ mod status;
 mod stop;
 mod summary;
 
-pub(crate) use children::sibling;
+pub(crate) use children::{sibling, start_service};
 #[cfg(test)]
 pub(crate) use config::PRESETS;
-pub(crate) use config::{TrainArgs, read_run_config};
+pub(crate) use config::{TrainArgs, preset_config, read_run_config};
 pub(crate) use stop::INTERRUPTED;
 pub(crate) use summary::Summary;
 
