@@ -15,6 +15,7 @@
 //! | `replay_storage_refusals_total{op,reason}`    | counter | insert batches / priority updates the log refused: `disk_full` (RESOURCE_EXHAUSTED) or `io_error` |
 //! | `replay_actor_{rows,batches,duplicate_batches,rejected_batches}_total` | counter | per actor |
 //! | `replay_actor_policy_version_lag`             | gauge   | newest policy seen − this actor's        |
+//! | `replay_actor_last_insert_timestamp_seconds`  | gauge   | Unix time of the actor's last stored batch (lag of live actors only: `… and (time() - this < 60)`) |
 //! | `replay_actor_slots`                          | gauge   | actor names holding a slot (`RegisterActor`) |
 //! | `replay_actor_registrations_total{outcome}`   | counter | registrations: `new` slot, `known` name, `refused` |
 //! | `replay_auth_refusals_total{service,method,reason}` | counter | requests the token check refused: `missing_token`, `wrong_token` (UNAUTHENTICATED), `forbidden` (PERMISSION_DENIED: the token's role may not call the method) |
@@ -88,6 +89,11 @@ pub fn render(table: &Table, registry: &ActorRegistry, refusals: &AuthRefusals) 
         .counters("replay_actor_duplicate_batches", "Batches acknowledged as duplicates (retransmissions) per actor.", per_actor(&|a| a.duplicate_batches as f64))
         .counters("replay_actor_rejected_batches", "Batches refused as invalid per actor.", per_actor(&|a| a.rejected_batches as f64))
         .gauges("replay_actor_policy_version_lag", "Newest policy_version seen across actors minus this actor's newest.", per_actor(&|a| policy_version_lag(newest, a) as f64))
+        .gauges(
+            "replay_actor_last_insert_timestamp_seconds",
+            "Unix time of this actor's last stored batch (0 before one): an actor that stopped inserting keeps its lag, so a console filters on this.",
+            per_actor(&|a| a.last_insert_unix_ms as f64 / 1000.0),
+        )
         .gauges("replay_actor_slots", "Actor names holding a slot (RegisterActor; mapless-actor --index auto).", table_only(slots.registered as f64))
         .counters(
             "replay_actor_registrations",

@@ -826,6 +826,10 @@ async fn metrics_endpoint_serves_prometheus_text() {
     assert_eq!(value(&format!("replay_actor_duplicate_batches_total{{{actor}}}")), 0.0);
     assert_eq!(value(&format!("replay_actor_rejected_batches_total{{{actor}}}")), 1.0);
     assert_eq!(value(&format!("replay_actor_policy_version_lag{{{actor}}}")), 0.0);
+    // Just inserted: its last insert is now, to within the test's run time.
+    let now_s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_secs_f64();
+    let last = value(&format!("replay_actor_last_insert_timestamp_seconds{{{actor}}}"));
+    assert!((now_s - 60.0..=now_s + 1.0).contains(&last), "{last} vs now {now_s}");
     let (status, _, _) = tokio::task::spawn_blocking(move || http_get(addr, "/nope")).await.expect("get");
     assert!(status.contains(" 404 "), "{status}");
     stop.send(()).expect("running");
