@@ -4,14 +4,11 @@
 //! project's own encoder:
 //! `MAPLESS_WRITE_FUZZ_SEEDS=1 cargo test -p mapless-actor --test fuzz_corpora -- --ignored`.
 
-use std::path::{Path, PathBuf};
-
 use mapless_actor::fuzzing::{policy_safetensors, seed_policy};
 use mapless_proto::v1::Algorithm;
 
-fn fuzz_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz")
-}
+#[path = "../../tests/common/fuzz_corpus.rs"]
+mod fuzz_corpus;
 
 fn seeds() -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
@@ -27,18 +24,7 @@ fn seeds() -> Vec<(String, Vec<u8>)> {
 
 #[test]
 fn policy_safetensors_corpus_and_regressions() {
-    let mut n = 0;
-    for kind in ["corpus", "regressions"] {
-        let Ok(entries) = std::fs::read_dir(fuzz_dir().join(kind).join("policy_safetensors")) else { continue };
-        let mut paths: Vec<PathBuf> = entries.flatten().map(|e| e.path()).filter(|p| p.is_file()).collect();
-        paths.sort();
-        for path in paths {
-            eprintln!("{}", path.display());
-            policy_safetensors(&std::fs::read(&path).unwrap());
-            n += 1;
-        }
-    }
-    assert!(n > 0, "no committed inputs for policy_safetensors");
+    assert!(fuzz_corpus::replay_inputs("policy_safetensors", policy_safetensors) > 0, "no committed inputs for policy_safetensors");
 }
 
 #[test]
@@ -52,12 +38,5 @@ fn the_seeds_pass_the_harness() {
 #[test]
 #[ignore]
 fn write_seed_corpus() {
-    if std::env::var_os("MAPLESS_WRITE_FUZZ_SEEDS").is_none() {
-        return;
-    }
-    let dir = fuzz_dir().join("corpus/policy_safetensors");
-    std::fs::create_dir_all(&dir).unwrap();
-    for (name, data) in seeds() {
-        std::fs::write(dir.join(format!("seed-{name}")), data).unwrap();
-    }
+    fuzz_corpus::write_seeds("policy_safetensors", seeds());
 }

@@ -6,33 +6,13 @@
 //! `MAPLESS_WRITE_FUZZ_SEEDS=1 cargo test -p mapless-replay --test fuzz_corpora -- --ignored`
 //! (docs/reliability.md, "Fuzzing").
 
-use std::path::{Path, PathBuf};
-
 use mapless_proto::v1::TransitionBatch;
 use mapless_replay::fuzzing::{self, frame_all, op, seed_batches, shm_frame};
 use prost::Message;
 
-fn fuzz_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz")
-}
-
-/// Runs every committed input of `target` through `harness`; returns how many there were.
-fn replay_inputs(target: &str, harness: fn(&[u8])) -> usize {
-    let mut n = 0;
-    for kind in ["corpus", "regressions"] {
-        let dir = fuzz_dir().join(kind).join(target);
-        let Ok(entries) = std::fs::read_dir(&dir) else { continue };
-        let mut paths: Vec<PathBuf> = entries.flatten().map(|e| e.path()).filter(|p| p.is_file()).collect();
-        paths.sort();
-        for path in paths {
-            let data = std::fs::read(&path).unwrap();
-            eprintln!("{}", path.display());
-            harness(&data);
-            n += 1;
-        }
-    }
-    n
-}
+#[path = "../../tests/common/fuzz_corpus.rs"]
+mod fuzz_corpus;
+use fuzz_corpus::replay_inputs;
 
 #[test]
 fn replay_ingest_corpus_and_regressions() {
@@ -167,12 +147,7 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
 #[test]
 #[ignore]
 fn write_seed_corpora() {
-    if std::env::var_os("MAPLESS_WRITE_FUZZ_SEEDS").is_none() {
-        return;
-    }
-    for (target, name, data) in seeds() {
-        let dir = fuzz_dir().join("corpus").join(target);
-        std::fs::create_dir_all(&dir).unwrap();
-        std::fs::write(dir.join(format!("seed-{name}")), data).unwrap();
+    for target in ["replay_ingest", "shm_wire", "wal_recovery"] {
+        fuzz_corpus::write_seeds(target, seeds().into_iter().filter(|(t, _, _)| *t == target).map(|(_, name, data)| (name, data)));
     }
 }

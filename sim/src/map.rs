@@ -401,12 +401,8 @@ impl Map {
         self.shaded.iter().any(|r| r.contains(x, y))
     }
 
-    /// Parses a ROS map_server YAML and its image.
-    pub fn from_ros_yaml(text: &str, path: &Path) -> Result<Map> {
-        Self::from_ros_yaml_with(text, path, |image| std::fs::read(image))
-    }
-
-    /// [`Map::from_ros_yaml`], with the image's bytes from `read_image`.
+    /// Parses a ROS map_server YAML (`path` is where it was read, for the image's relative
+    /// path and for errors) and its image, whose bytes come from `read_image`.
     fn from_ros_yaml_with(text: &str, path: &Path, read_image: impl FnOnce(&Path) -> std::io::Result<Vec<u8>>) -> Result<Map> {
         let meta: RosMapYaml = serde_yaml::from_str(text).map_err(|e| map_err(path, e.to_string()))?;
         if !(meta.resolution.is_finite() && meta.resolution > 0.0) {

@@ -3,15 +3,14 @@
 //! fuzzer runs (`mapless_sim::fuzzing`). The seeds are the project's own maps, written by its
 //! own writers: `MAPLESS_WRITE_FUZZ_SEEDS=1 cargo test -p mapless-sim --test fuzz_corpora -- --ignored`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use mapless_sim::fuzzing::{check, map_files};
 use mapless_sim::map::Map;
 use mapless_sim::worlds::{Family, generate};
 
-fn fuzz_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz")
-}
+#[path = "../../tests/common/fuzz_corpus.rs"]
+mod fuzz_corpus;
 
 /// An input of the harness: `yaml_len u16 LE | yaml | image`.
 fn input(yaml: &str, image: &[u8]) -> Vec<u8> {
@@ -68,18 +67,7 @@ fn seeds() -> Vec<(String, Vec<u8>)> {
 
 #[test]
 fn map_files_corpus_and_regressions() {
-    let mut n = 0;
-    for kind in ["corpus", "regressions"] {
-        let Ok(entries) = std::fs::read_dir(fuzz_dir().join(kind).join("map_files")) else { continue };
-        let mut paths: Vec<PathBuf> = entries.flatten().map(|e| e.path()).filter(|p| p.is_file()).collect();
-        paths.sort();
-        for path in paths {
-            eprintln!("{}", path.display());
-            map_files(&std::fs::read(&path).unwrap());
-            n += 1;
-        }
-    }
-    assert!(n > 0, "no committed inputs for map_files");
+    assert!(fuzz_corpus::replay_inputs("map_files", map_files) > 0, "no committed inputs for map_files");
 }
 
 /// Every seed loads (so the fuzzer starts from maps that pass, not from errors) and passes.
@@ -106,12 +94,5 @@ fn a_map_with_inverted_bounds_fails_the_check() {
 #[test]
 #[ignore]
 fn write_seed_corpus() {
-    if std::env::var_os("MAPLESS_WRITE_FUZZ_SEEDS").is_none() {
-        return;
-    }
-    let dir = fuzz_dir().join("corpus/map_files");
-    std::fs::create_dir_all(&dir).unwrap();
-    for (name, data) in seeds() {
-        std::fs::write(dir.join(format!("seed-{name}")), data).unwrap();
-    }
+    fuzz_corpus::write_seeds("map_files", seeds());
 }
