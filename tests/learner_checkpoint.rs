@@ -134,6 +134,22 @@ fn a_truncated_file_is_reported_as_truncated() {
     assert!(matches!(e, LearnerError::CheckpointCorrupt { .. }), "{e}");
 }
 
+/// The manifest carries no checksum of its own: damaged sizes in it (or a forged state) must be
+/// refused before an agent of that size is built, not become an allocation libtorch cannot make.
+#[test]
+fn sizes_no_stored_tensor_could_fill_are_refused_before_building_the_agent() {
+    let (_d, path) = saved(AlgorithmKind::Ddpg);
+    let manifest = path.join(MANIFEST);
+    let good = fs::read_to_string(&manifest).unwrap();
+    assert!(good.contains("\"obs_dim\": 5"), "{good}");
+    for forged in ["\"obs_dim\": 500000000000", "\"obs_dim\": 18446744073709551615"] {
+        fs::write(&manifest, good.replace("\"obs_dim\": 5", forged)).unwrap();
+        let e = checkpoint::load(&path, None).unwrap_err();
+        assert!(matches!(e, LearnerError::CheckpointCorrupt { .. }), "{e}");
+        assert!(e.to_string().contains("parameters"), "{e}");
+    }
+}
+
 #[test]
 fn other_algorithms_dimensions_and_format_versions_are_mismatches() {
     let (_d, path) = saved(AlgorithmKind::Sac);

@@ -232,6 +232,11 @@ impl Default for SacConfig {
     }
 }
 
+/// Widest hidden layer accepted: 64 times the paper's 256 (Table I). A layer of this width
+/// is 2^28 parameters (1 GiB of f32) before Adam's two moments; wider ones would be refused
+/// by libtorch as an allocation, which is not a clear error.
+pub const MAX_HIDDEN_WIDTH: i64 = 16_384;
+
 impl LearnerConfig {
     /// Checks every field's domain; the error names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -239,8 +244,8 @@ impl LearnerConfig {
         let unit = |x: f64| x.is_finite() && (0.0..=1.0).contains(&x);
         let positive = |x: f64| x.is_finite() && x > 0.0;
         self.device.parse::<crate::Device>()?;
-        if self.hidden_width < 1 {
-            return bad("hidden_width", format!("is {}; must be ≥ 1", self.hidden_width));
+        if !(1..=MAX_HIDDEN_WIDTH).contains(&self.hidden_width) {
+            return bad("hidden_width", format!("is {}; must be in 1..={MAX_HIDDEN_WIDTH}", self.hidden_width));
         }
         if !unit(self.gamma) {
             return bad("gamma", format!("is {}; must be in [0, 1]", self.gamma));
@@ -335,5 +340,9 @@ mod tests {
         let mut c = LearnerConfig::default();
         c.device = "tpu".into();
         assert!(matches!(c.validate().unwrap_err(), ConfigError::InvalidDevice { .. }));
+        for (width, ok) in [(0, false), (1, true), (MAX_HIDDEN_WIDTH, true), (MAX_HIDDEN_WIDTH + 1, false), (i64::MAX, false)] {
+            let c = LearnerConfig { hidden_width: width, ..LearnerConfig::default() };
+            assert_eq!(c.validate().is_ok(), ok, "hidden_width {width}");
+        }
     }
 }

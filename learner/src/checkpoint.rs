@@ -363,6 +363,16 @@ pub fn load(path: &Path, device: Option<&str>) -> Result<(Agent, serde_json::Val
     if let Some(d) = device {
         cfg.device = d.to_string();
     }
+    // The agent is built from the stored sizes before its tensors are checked against it, so
+    // sizes that no stored tensor could fill (a manifest's digits damaged, a forged state) are
+    // refused first, not handed to libtorch as an allocation it cannot make. The actor alone
+    // holds a hidden × (obs_dim + act_dim) and a hidden × hidden matrix.
+    let stored: i64 = l.tensors.values().map(Tensor::numel).map(|n| i64::try_from(n).unwrap_or(i64::MAX)).fold(0, i64::saturating_add);
+    let (obs, act) = (i64::try_from(l.manifest.obs_dim).unwrap_or(i64::MAX), i64::try_from(l.manifest.act_dim).unwrap_or(i64::MAX));
+    let needed = cfg.hidden_width.saturating_mul(cfg.hidden_width.max(obs.saturating_add(act)));
+    if needed > stored {
+        return Err(corrupt(&l.dir, format!("hidden_width {}, obs_dim {obs} and act_dim {act} need at least {needed} parameters; `{TENSORS}` holds {stored}", cfg.hidden_width)));
+    }
     let mut agent = Agent::new(&cfg, l.manifest.obs_dim, l.manifest.act_dim)?;
     agent.restore_state(&l.tensors, l.state.agent).map_err(|reason| corrupt(&l.dir, reason))?;
     Ok((agent, l.state.extra))

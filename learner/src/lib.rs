@@ -24,6 +24,8 @@ pub mod algo;
 pub mod batch;
 pub mod ceiling;
 pub mod checkpoint;
+/// The harness of the `checkpoint_files` fuzz target (fuzz/), run on stable by tests/fuzz_corpora.rs.
+pub mod fuzzing;
 /// The learner's configuration (`mapless-learner-config`, readable without libtorch).
 pub use mapless_learner_config as config;
 mod cpu;
