@@ -193,9 +193,8 @@ async fn pace(next: &mut Instant, period: Option<Duration>, s: &Shared) -> bool 
 
 /// One actor's insert stream: a paced batch, its acknowledgement, again. A failed stream is
 /// counted and reopened after a second; sequence numbers go on, so nothing is inserted twice.
-async fn insert_stream(i: usize, addr: SocketAddr, a: Arc<SoakArgs>, s: Arc<Shared>) {
+async fn insert_stream(i: usize, addr: SocketAddr, obs_dim: usize, a: Arc<SoakArgs>, s: Arc<Shared>) {
     let actor = format!("soak-{i:03}");
-    let obs_dim = mapless_replay::TableConfig::default().obs_dim;
     let per_stream = a.rows_per_s / a.streams as f64;
     let period = (per_stream > 0.0).then(|| Duration::from_secs_f64(a.batch_rows as f64 / per_stream));
     let template = mapless_replay::bench::synthetic_batch(&actor, 1, a.batch_rows, obs_dim);
@@ -487,7 +486,7 @@ pub fn soak(a: SoakArgs) -> Result<()> {
     let any_port = SocketAddr::from(([127, 0, 0, 1], 0));
     let mut table = preset.replay.clone();
     table.capacity = a.capacity;
-    table.sampler = SamplerConfig::Prioritized { alpha: 0.6, beta: 0.4, epsilon: 1e-6 };
+    table.sampler = SamplerConfig::prioritized();
     table.rate_limiter = RateLimiterConfig { min_size_to_sample: 1_000, samples_per_insert: None, ..RateLimiterConfig::default() };
     let mut server = ServerConfig { listen: any_port, metrics_listen: Some(any_port), table, shm_enabled: false, ..ServerConfig::default() };
     server.persistence.dir = Some(dir.join("replay"));
@@ -544,19 +543,17 @@ pub fn soak(a: SoakArgs) -> Result<()> {
         first_failures: Mutex::default(),
     });
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("soak").enable_all().build()?;
-    // Ctrl-C or SIGTERM ends the soak early, as a failure, with the children stopped.
-    let interrupted = Arc::new(AtomicBool::new(false));
+    // Ctrl-C or SIGTERM ends the soak early, as a failure ("interrupted"), children stopped.
     {
-        let (interrupted, s) = (Arc::clone(&interrupted), Arc::clone(&s));
+        let s = Arc::clone(&s);
         rt.spawn(async move {
             crate::signals::termination().await;
-            interrupted.store(true, Ordering::Relaxed);
             s.stop.store(true, Ordering::Relaxed);
         });
     }
     let mut tasks = Vec::new();
     for i in 0..a.streams {
-        tasks.push((format!("insert stream {i}"), rt.spawn(insert_stream(i, replay_addr, Arc::clone(&a), Arc::clone(&s)))));
+        tasks.push((format!("insert stream {i}"), rt.spawn(insert_stream(i, replay_addr, server.table.obs_dim, Arc::clone(&a), Arc::clone(&s)))));
     }
     for j in 0..a.samplers {
         tasks.push((format!("sampler {j}"), rt.spawn(sample_stream(j, replay_addr, server.table.name.clone(), Arc::clone(&a), Arc::clone(&s)))));

@@ -27,6 +27,13 @@ pub enum SamplerConfig {
     },
 }
 
+impl SamplerConfig {
+    /// Proportional prioritisation with the defaults above (α 0.6, β 0.4, ε 1e-6).
+    pub fn prioritized() -> Self {
+        SamplerConfig::Prioritized { alpha: default_alpha(), beta: default_beta(), epsilon: default_epsilon() }
+    }
+}
+
 fn default_alpha() -> f64 {
     0.6
 }
