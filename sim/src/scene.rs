@@ -51,6 +51,9 @@ pub struct Footprint {
     pub half_width_m: f64,
 }
 
+/// Most cells of a [`Scene`]'s grid index (4 M: a 2 km square at the usual 1 m cells).
+pub const MAX_GRID_CELLS: usize = 1 << 22;
+
 /// Obstacles as primitives, with a grid index. Immutable once built; shared by every vehicle.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -76,8 +79,15 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Builds a scene over `bounds` with grid cells of `cell_m` metres.
+    /// Builds a scene over `bounds` with grid cells of `cell_m` metres, or coarser ones where
+    /// `cell_m` would need more than [`MAX_GRID_CELLS`] cells (a map kilometres wide): the
+    /// index then only narrows less, ray casts stay exact.
     pub fn new(bounds: Aabb, segments: &[[f64; 4]], circles: &[[f64; 3]], cell_m: f64) -> Self {
+        let cells_at = |c: f64| ((bounds.width() + 2.0 * c) / c).ceil() * ((bounds.height() + 2.0 * c) / c).ceil();
+        let mut cell_m = cell_m;
+        while !(cells_at(cell_m) <= MAX_GRID_CELLS as f64) && cell_m.is_finite() {
+            cell_m *= 2.0;
+        }
         let margin = cell_m; // primitives on the boundary still fall inside the grid
         let origin_x = (bounds.min_x - margin) as f32;
         let origin_y = (bounds.min_y - margin) as f32;
@@ -540,6 +550,17 @@ mod tests {
         assert!((s.cast_ray(0.0, 0.0, 1.0, 0.0, 12.0) - 2.5).abs() < 1e-5);
         // Tangent-missing ray.
         assert_eq!(s.cast_ray(0.0, 1.0, 1.0, 0.0, 12.0), 12.0);
+    }
+
+    /// A map kilometres wide gets coarser cells, not 10^10 of them (whose count overflowed an
+    /// i32: fuzz/regressions/map_files/grid-cells-overflow).
+    #[test]
+    fn a_huge_scene_keeps_its_grid_bounded_and_its_rays_exact() {
+        let h = 1e5;
+        let s = Scene::new(Aabb { min_x: -h, min_y: -h, max_x: h, max_y: h }, &[[-h, -h, h, -h]], &[[3.0, 0.0, 0.5]], 1.0);
+        assert!((s.nx as usize) * (s.ny as usize) <= MAX_GRID_CELLS, "{} x {}", s.nx, s.ny);
+        assert!((s.cast_ray(0.0, 0.0, 1.0, 0.0, 12.0) - 2.5).abs() < 1e-3);
+        assert_eq!(s.cast_ray(0.0, 0.0, 0.0, -1.0, 12.0), s.cast_ray_brute(0.0, 0.0, 0.0, -1.0, 12.0));
     }
 
     #[test]
