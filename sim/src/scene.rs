@@ -139,8 +139,12 @@ impl Scene {
             let (ax, ay, bx, by) = (self.seg_ax[k], self.seg_ay[k], self.seg_bx[k], self.seg_by[k]);
             // Walk only the cells the segment really crosses, not its whole bounding box, so
             // long diagonal walls do not flood the grid.
-            let len = ((bx - ax).powi(2) + (by - ay).powi(2)).sqrt();
-            let n = ((len / (0.25 * self.cell_m)).ceil() as usize).max(1);
+            // In f64: the squares of a wall 10^20 m long overflow f32, and an infinite length
+            // made this walk endless. Capped at quarter cells along 4 grid half-perimeters: a
+            // segment inside the grid is at most one long.
+            let len = (f64::from(bx - ax).powi(2) + f64::from(by - ay).powi(2)).sqrt();
+            let most = 16.0 * f64::from(self.nx + self.ny);
+            let n = (len / (0.25 * f64::from(self.cell_m))).ceil().min(most).max(1.0) as usize;
             let mut last = (-1, -1);
             for t in 0..=n {
                 let f = t as f32 / n as f32;
