@@ -51,7 +51,7 @@ pub struct Footprint {
     pub half_width_m: f64,
 }
 
-/// Most cells of a [`Scene`]'s grid index (4 M: a 2 km square at the usual 1 m cells).
+/// Most cells of a [`Scene`]'s grid index (4 M: a 4 km square at the simulator's 2 m cells).
 pub const MAX_GRID_CELLS: usize = 1 << 22;
 
 /// Obstacles as primitives, with a grid index. Immutable once built; shared by every vehicle.
