@@ -5,8 +5,9 @@
 # that listen beyond loopback refuse to start without TLS and a token; this makes both for a
 # compose or multi-host cluster.
 #
-# Usage: deploy/certs.sh [NAME...]   (default names: replay learner localhost)
-# Existing files are kept (delete deploy/secrets/ to start over). deploy/compose.yaml mounts
+# Usage: deploy/certs.sh [NAME...]   (default names: replay learner monitor localhost)
+# Existing files are kept (delete deploy/secrets/ to start over), but for a server certificate
+# that lacks one of the names, which is issued again. deploy/compose.yaml mounts
 # single files: actors get ca.pem and actor-token (insert, register, subscribe: it cannot read
 # the replay), the replay and the learner also learner-token, server.pem and server.key (each
 # service checks both tokens); the CA's key (ca.key) never leaves the host. A `token` left by
@@ -17,13 +18,21 @@ umask 077
 dir="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)/secrets"
 mkdir -p "$dir"
 cd "$dir"
-if [ $# -gt 0 ]; then names=("$@"); else names=(replay learner localhost); fi
+if [ $# -gt 0 ]; then names=("$@"); else names=(replay learner monitor localhost); fi
 if [ ! -s ca.pem ]; then
     openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 825 \
         -subj "/CN=mapless cluster CA" -keyout ca.key -out ca.pem 2>/dev/null
 fi
-# A new CA needs a new server certificate.
-if [ ! -s server.pem ] || [ ca.pem -nt server.pem ]; then
+# A new CA needs a new server certificate, and so does a name the certificate lacks (an older
+# certs.sh made it without `monitor`).
+covers_names() {
+    local have n
+    have=$(openssl x509 -in server.pem -noout -ext subjectAltName 2>/dev/null | tail -1 | tr -d ' ')
+    for n in "${names[@]}"; do
+        case ",$have," in *",DNS:$n,"*) ;; *) return 1 ;; esac
+    done
+}
+if [ ! -s server.pem ] || [ ca.pem -nt server.pem ] || ! covers_names; then
     san=$(printf 'DNS:%s,' "${names[@]}"); san="${san%,},IP:127.0.0.1"
     openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj "/CN=${names[0]}" \
         -keyout server.key -out server.csr 2>/dev/null

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
-# deploy/images.sh — builds the three container images from this checkout:
+# deploy/images.sh — builds the cluster's container images from this checkout's binaries (no
+# compilation inside Docker; deploy/build.sh builds the same names from source, deploy/Dockerfile):
 #
 #   mapless-replay:TAG   the replay service       (mapless-replay; glibc only, ~10 MB)
 #   mapless-actor:TAG    an actor process         (mapless-actor;  glibc only, ~10 MB)
+#   mapless-monitor:TAG  the run folder           (mapless monitor; glibc only, ~10 MB)
 #   mapless-learner:TAG  the learner              (mapless-learner; libtorch, several GB)
 #   mapless-prometheus:TAG  Prometheus, from Debian's package (see stage_prometheus below)
 #
@@ -42,7 +44,7 @@ if [ "$profile" = dev ]; then
     # script, making the next workspace build recompile everything (gigabytes of CI's disk).
     cargo build --locked --workspace --all-targets
 else
-    cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay --bins
+    cargo build --locked --profile "$profile" -p mapless-learner -p mapless-actor -p mapless-replay -p mapless-cli --bins
 fi
 
 # The user every image runs as (not root): the uid and gid distroless images call `nonroot`.
@@ -78,16 +80,16 @@ with tarfile.open(fileobj=sys.stdout.buffer, mode="w|", format=tarfile.PAX_FORMA
 PY
 }
 
-# stage NAME BINARY: a root file system with BINARY (a stripped copy) and symbolic links to its
+# stage NAME BINARY [SUBCOMMAND]: a root file system with BINARY (a stripped copy) and symbolic links to its
 # libraries, streamed as one dereferenced tar into `docker import`. Neither a copy of libtorch nor
 # a build context is written: the learner's 2.7 GB land on disk once, as the image's one layer
 # (a build context cost three times that, and a CI machine once ran out of disk on it).
 stage() {
-    local name="$1" bin="$2" dir="target/images/$1" lib dest
+    local name="$1" bin="$2" sub="${3:+\"$3\", }" dir="target/images/$1" lib dest
     rm -rf "$dir"
-    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/etc" "$dir/root/tmp" "$dir/root/data" "$dir/root/train"
+    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/etc" "$dir/root/tmp" "$dir/root/data" "$dir/root/train" "$dir/root/runs"
     chmod 1777 "$dir/root/tmp"
-    chmod 0750 "$dir/root/data" "$dir/root/train"
+    chmod 0750 "$dir/root/data" "$dir/root/train" "$dir/root/runs"
     printf 'root:x:0:0:root:/root:/sbin/nologin\nnonroot:x:%s:%s:nonroot:/data:/sbin/nologin\n' "$run_uid" "$run_uid" > "$dir/root/etc/passwd"
     printf 'root:x:0:\nnonroot:x:%s:\n' "$run_uid" > "$dir/root/etc/group"
     cp "$out_dir/$bin" "$dir/root/usr/local/bin/"
@@ -109,13 +111,13 @@ stage() {
         exit 1
     fi
     echo "images.sh: mapless-$name:$tag ($(du -shL "$dir/root" | cut -f1))" >&2
-    rootfs "$dir/root" 1 data train |
+    rootfs "$dir/root" 1 data train runs |
         docker import \
             --change 'ENV LD_LIBRARY_PATH=/opt/mapless/lib' \
             --change "USER $run_uid:$run_uid" \
             --change "LABEL org.opencontainers.image.title=\"mapless-$name\" org.opencontainers.image.source=\"mapless\"" \
-            --change "HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 CMD [\"/usr/local/bin/$bin\", \"health\"]" \
-            --change "ENTRYPOINT [\"/usr/local/bin/$bin\"]" \
+            --change "HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 CMD [\"/usr/local/bin/$bin\", $sub\"health\"]" \
+            --change "ENTRYPOINT [\"/usr/local/bin/$bin\"${3:+, \"$3\"}]" \
             - "mapless-$name:$tag" >/dev/null
 }
 
@@ -159,6 +161,8 @@ stage_prometheus() {
 
 stage replay mapless-replay
 stage actor mapless-actor
+# The `mapless` command as `mapless monitor` (the compose cluster's run folder; no libtorch).
+stage monitor mapless monitor
 stage learner mapless-learner
 stage_prometheus
-docker images --format '{{.Repository}}:{{.Tag}}  {{.Size}}' | grep -E "^mapless-(replay|actor|learner|prometheus):$tag " >&2
+docker images --format '{{.Repository}}:{{.Tag}}  {{.Size}}' | grep -E "^mapless-(replay|actor|monitor|learner|prometheus):$tag " >&2

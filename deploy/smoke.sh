@@ -25,7 +25,9 @@
 #      reconnected;
 #   8. the two replicas, stopped, each report the rows they sent, all acknowledged, and the
 #      replay holds exactly that many under each one's id (nothing lost, nothing twice);
-#   9. `docker-compose stop` ends the learner with a final checkpoint;
+#   9. `docker-compose stop` ends the learner with a final checkpoint, and the monitor with
+#      summary.json (a final evaluation of the learner's policy), curves.png, evals.csv and eval/
+#      in its run folder, whose episodes.csv (checked at step 2) held every replica's episodes;
 #  10. `down -v` leaves no container, network or volume of the project behind.
 #
 # Usage: deploy/smoke.sh   (SKIP_IMAGES=1 reuses built images; KEEP=1 leaves the cluster up;
@@ -45,15 +47,10 @@ export MAPLESS_PROMETHEUS_PORT=0
 actors="${ACTORS:-4}"
 [ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
 ./certs.sh
-project=mapless-smoke
-if command -v docker-compose >/dev/null; then compose=(docker-compose); else compose=(docker compose); fi
-dc() { "${compose[@]}" -p "$project" -f compose.yaml "$@"; }
+me=smoke project=mapless-smoke
+# dc, leftovers, wait_for, learner_field, replay_metrics, prom, prom_up: deploy/lib.sh.
+source ./lib.sh
 logs="$(mktemp -d)/compose.log"
-# What is left of the project: containers, networks, volumes (one line each).
-leftovers() {
-    local f="label=com.docker.compose.project=$project"
-    { docker ps -aq --filter "$f"; docker network ls -q --filter "$f"; docker volume ls -q --filter "$f"; } | sed '/^$/d'
-}
 finish() {
     local rc=$?
     dc logs --no-color > "$logs" 2>&1 || true
@@ -71,37 +68,9 @@ dc down -v >/dev/null 2>&1 || true
 started=$SECONDS
 dc up -d --scale actor="$actors"
 
-# wait_for SECONDS WHAT COMMAND...: runs COMMAND every 2 s until it succeeds.
-wait_for() {
-    local limit=$1 what=$2; shift 2
-    local start=$SECONDS
-    until "$@"; do
-        if (( SECONDS - start > limit )); then echo "smoke: timed out after ${limit}s waiting for: $what" >&2; return 1; fi
-        sleep 2
-    done
-    echo "smoke: ok after $(( SECONDS - start ))s: $what"
-}
-# Newest learner status line: {"event":"status","updates":N,...,"weights_version":V}.
-learner_field() { dc logs --no-color learner 2>/dev/null | grep -o "\"$1\":[0-9]*" | tail -1 | cut -d: -f2; }
 learner_updates() { local u; u=$(learner_field updates); [ "${u:-0}" -gt 100 ]; }
 learner_versions() { local v; v=$(learner_field weights_version); [ "${v:-0}" -ge 3 ]; }
 
-# The replay's /metrics, read inside its network namespace, with the metrics token (as the
-# prometheus service reads it); `replay_metrics_status ARGS` prints the HTTP status instead.
-replay_metrics() {
-    local pid
-    pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
-    nsenter -t "$pid" -n curl -sf --max-time 5 -H "Authorization: Bearer $(cat secrets/metrics-token)" http://127.0.0.1:9464/metrics
-}
-replay_metrics_status() {
-    local pid
-    pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
-    nsenter -t "$pid" -n curl -s -o /dev/null -w '%{http_code}' --max-time 5 "$@" http://127.0.0.1:9464/metrics
-}
-# Prometheus's HTTP API on the host port compose published (MAPLESS_PROMETHEUS_PORT=0 below).
-prom() { curl -sf --max-time 5 "http://$(dc port prometheus 9090)$1"; }
-# "JOB UP" for every target of `up`, one per line.
-prom_up() { prom "/api/v1/query?query=up" | python3 -c 'import json,sys; [print(r["metric"]["job"], r["value"][1]) for r in json.load(sys.stdin)["data"]["result"]]'; }
 # Prometheus scraped the replay, the learner and N actor replicas, each up.
 prom_scraped() { [ "$(prom_up | sort | uniq -c | awk '$3 == 1 {printf "%s=%s ", $2, $1}')" = "actor=$1 learner=1 replay=1 " ]; }
 # Actor ids with rows in the replay, and their row counts: "actor-<slot>-<pid>-<ms> ROWS".
@@ -140,7 +109,7 @@ all_healthy() {
     done
 }
 wait_for 120 "every container reports healthy" all_healthy
-# No container runs its process as root: each runs as the images' user, 65532 (deploy/images.sh).
+# No container runs its process as root: each runs as the images' user, 65532 (deploy/Dockerfile, deploy/images.sh).
 for c in $(dc ps -q); do
     uid=$(ps -o uid= -p "$(docker inspect -f '{{.State.Pid}}' "$c")" | tr -d ' ')
     [ "$uid" = 65532 ] || { echo "smoke: container ${c:0:12} ($(docker inspect -f '{{.Name}}' "$c")) runs as uid $uid, not 65532" >&2; exit 1; }
@@ -155,6 +124,13 @@ for cid in $(dc ps -q actor); do
 done
 [ "$(registered)" = "$actors" ] || { echo "smoke: the replay holds $(registered) slots, expected $actors" >&2; exit 1; }
 show_actors
+
+# The run folder (the monitor): episodes from every replica arrive in episodes.csv.
+run_file() { docker cp "$(dc ps -q monitor):/runs/compose/$1" - 2>/dev/null | tar -xO; }
+episode_actors() { run_file episodes.csv | python3 -c 'import csv,sys; print(len({r["actor_id"] for r in csv.DictReader(sys.stdin)}))'; }
+monitor_has_all() { [ "$(episode_actors)" -ge "$1" ]; }
+wait_for 180 "the monitor's episodes.csv holds episodes of all $actors replicas" monitor_has_all "$actors"
+echo "smoke: ok: the run folder (monitor) holds $(run_file episodes.csv | tail -n +2 | wc -l) episodes from $(episode_actors) actor ids"
 
 # Observability from the host: Prometheus (the one published port) scraped every replica, found
 # by DNS, with the metrics token; a scrape without it is refused; the mapless console renders.
@@ -261,6 +237,21 @@ for c in $ids; do
 done
 
 dc stop -t 60 >/dev/null 2>&1
+# The monitor, stopped, drew the curves, evaluated the newest policy and wrote summary.json.
+summary=$(run_file summary.json) || { echo "smoke: no summary.json in the monitor's run folder" >&2; exit 1; }
+python3 - "$summary" <<'PY' || exit 1
+import json, sys
+s = json.loads(sys.argv[1])
+ev = s.get("evaluation") or {}
+ok = s["episodes"] > 0 and s["env_steps"] > 0 and s["updates"] > 0 and ev.get("policy_version", 0) >= 2 and len(ev.get("episodes", [])) > 0
+print(f"smoke: {'ok' if ok else 'FAIL'}: summary.json: {s['episodes']} episodes, {s['env_steps']} env steps, {s['updates']} updates, "
+      f"final evaluation of policy v{ev.get('policy_version')} on {ev.get('map')}: {len(ev.get('episodes', []))} episodes, mean steps {ev.get('mean_steps')}")
+sys.exit(0 if ok else 1)
+PY
+for f in curves.png evals.csv policy.safetensors eval/episode-1.png; do
+    [ -n "$(run_file "$f" | head -c 8)" ] || { echo "smoke: the run folder lacks $f" >&2; exit 1; }
+done
+echo "smoke: ok: the run folder also holds curves.png, evals.csv, policy.safetensors and eval/"
 # Not `grep -q`: it would stop reading at the match, and under pipefail the SIGPIPE that `logs`
 # then gets fails the pipeline.
 dc logs --no-color learner 2>/dev/null | grep '"event":"stopped"' >/dev/null || { echo "smoke: the learner did not report its final checkpoint" >&2; exit 1; }

@@ -18,6 +18,7 @@
 //! learner crate's, the one executable that does), and `bench learner` runs its bench.
 
 use std::path::{Path, PathBuf};
+use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -32,6 +33,7 @@ mod eval;
 mod policies;
 mod protocol;
 mod reproduce;
+mod scrape;
 mod signals;
 mod soak;
 mod train;
@@ -65,6 +67,9 @@ enum Cmd {
     /// Train: replay, learner and N actor processes on this machine, supervised, with a live
     /// progress line, curves and trajectories in the run folder.
     Train(train::TrainArgs),
+    /// The run folder of a cluster `mapless train` did not start (the compose cluster): episodes
+    /// from the actors, curves, evaluations of the learner's policy, summary.json on SIGTERM.
+    Monitor(train::MonitorArgs),
     /// Evaluate a run's policy (deterministic) on any map: steps, EQS, EES, distance, shaded
     /// time per episode and their means; a trajectory picture per episode.
     Eval(EvalArgs),
@@ -324,7 +329,7 @@ enum BenchCmd {
     Soak(soak::SoakArgs),
 }
 
-fn main() {
+fn main() -> ExitCode {
     let cli = Cli::parse();
     // Benchmarks run services in-process; their per-stream info lines would drown the figures.
     let quiet = matches!(cli.cmd, Cmd::Bench { .. });
@@ -333,18 +338,24 @@ fn main() {
         Cmd::Train(_) => "supervisor",
         Cmd::Eval(_) => "eval",
         Cmd::Reproduce(_) => "reproduce",
+        Cmd::Monitor(_) => "monitor",
         _ => "cli",
     };
     mapless_net::logging::identify(&[("role", role)]);
-    if let Err(e) = run(cli) {
-        eprintln!("error: {e:#}");
-        std::process::exit(1);
+    match run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
     }
 }
 
-fn run(cli: Cli) -> Result<()> {
+fn run(cli: Cli) -> Result<ExitCode> {
     let log_json = cli.log_json;
-    match cli.cmd {
+    let done: Result<()> = match cli.cmd {
+        // A probe's verdict is its exit code.
+        Cmd::Monitor(a) => return train::monitor(&a),
         Cmd::Maps { cmd: MapsCmd::List } => maps_list(),
         Cmd::Maps { cmd: MapsCmd::Show { map, out, px_per_m } } => maps_show(&map, &out, px_per_m),
         Cmd::Maps { cmd: MapsCmd::Stats { map, grid, headings, json } } => maps_stats(&map, grid, headings, json),
@@ -362,7 +373,8 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Bench { cmd: BenchCmd::Learner { args } } => bench_learner(&args),
         Cmd::Bench { cmd: BenchCmd::E2e { actors, seconds, vehicles, set, json } } => bench_e2e(&actors, seconds, vehicles, &set, json),
         Cmd::Bench { cmd: BenchCmd::Soak(args) } => soak::soak(args),
-    }
+    };
+    done.map(|()| ExitCode::SUCCESS)
 }
 
 fn policies_cmd(cmd: PoliciesCmd) -> Result<()> {

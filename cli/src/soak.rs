@@ -26,8 +26,7 @@
 //! - any request fails or a child exits.
 
 use std::fs;
-use std::io::{Read as _, Write as _};
-use std::net::{SocketAddr, TcpStream};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, mpsc as std_mpsc};
@@ -377,18 +376,9 @@ fn dir_bytes(dir: &Path) -> u64 {
         .sum()
 }
 
-/// A counter's value from a Prometheus text exposition at `http://addr/metrics`.
+/// A counter's value from the exposition at `http://addr/metrics`.
 fn scrape_counter(addr: SocketAddr, name: &str) -> Option<f64> {
-    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2)).ok()?;
-    s.set_read_timeout(Some(Duration::from_secs(2))).ok()?;
-    write!(s, "GET /metrics HTTP/1.0\r\nHost: {addr}\r\n\r\n").ok()?;
-    let mut text = String::new();
-    s.read_to_string(&mut text).ok()?;
-    text.lines().filter(|l| !l.starts_with('#')).find_map(|l| {
-        let (metric, value) = l.rsplit_once(' ')?;
-        let metric = metric.split('{').next()?;
-        (metric == name || metric == format!("{name}_total")).then(|| value.parse().ok())?
-    })
+    crate::scrape::value(&crate::scrape::metrics(&addr.to_string(), None).ok()?, name)
 }
 
 /// Growth checks over the samples; the reasons it fails, if any. After the warm-up (the table

@@ -23,7 +23,7 @@
 //! | `/mapless.v1.ReplayService/Insert`          | actor          |
 //! | `/mapless.v1.ReplayService/RegisterActor`   | actor          |
 //! | `/mapless.v1.WeightsService/Subscribe`      | actor          |
-//! | `/mapless.v1.StatsService/Report`           | actor (the collector is loopback-only and checks no token) |
+//! | `/mapless.v1.StatsService/Report`           | actor          |
 //! | `/mapless.v1.ReplayService/Sample`          | learner        |
 //! | `/mapless.v1.ReplayService/UpdatePriorities`| learner        |
 //! | `/mapless.v1.ReplayService/ServerInfo`      | learner        |

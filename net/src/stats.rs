@@ -1,7 +1,8 @@
 //! Episode statistics: the actor's reporter (best effort, `StatsService.Report`) and the
-//! collector that serves that RPC (run by `mapless train`, the run's supervisor).
+//! collector that serves that RPC (run by `mapless train`, the run's supervisor, on loopback,
+//! and by `mapless monitor` beside a compose cluster, with TLS and the actors' token).
 
-use std::net::SocketAddr;
+use std::time::Duration;
 
 use mapless_proto::MAX_MESSAGE_BYTES;
 use mapless_proto::v1::stats_service_client::StatsServiceClient;
@@ -9,12 +10,14 @@ use mapless_proto::v1::stats_service_server::{StatsService, StatsServiceServer};
 use mapless_proto::v1::{EpisodeStats, ProtocolVersion, ReportSummary};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
-use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::server::NamedService;
+use tonic::service::Routes;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::endpoint::GrpcEndpoint;
 use crate::health::Health;
+use crate::serve::{Readiness, Security, ServeError, serve_secured};
 
 /// Checks an [`EpisodeStats`] record against the contract (stats.proto).
 pub fn validate(e: &EpisodeStats) -> Result<(), String> {
@@ -129,24 +132,18 @@ impl StatsService for Collector {
     }
 }
 
-/// Serves a [`Collector`] on `listener` (loopback only: the records are not secret, but the
-/// rule is the cluster's) until `stop` turns true, with the gRPC health service beside it
-/// (SERVING until `stop`).
-pub async fn serve_collector(listener: TcpListener, tx: mpsc::Sender<EpisodeStats>, mut stop: watch::Receiver<bool>) -> Result<(), String> {
-    let addr: SocketAddr = listener.local_addr().map_err(|e| e.to_string())?;
-    if !addr.ip().is_loopback() {
-        return Err(format!("stats collector: refusing non-loopback address {addr}"));
-    }
-    let svc = StatsServiceServer::new(Collector { tx }).max_decoding_message_size(MAX_MESSAGE_BYTES);
-    let health = Health::new();
-    health.serve();
-    let (health_service, follow_health) = health.grpc(&[<StatsServiceServer<Collector> as NamedService>::NAME]).await;
-    let serving = tonic::transport::Server::builder().add_service(svc).add_service(health_service).serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+/// The gRPC names the collector's health service answers for.
+const GRPC_NAMES: &[&str] = &[<StatsServiceServer<Collector> as NamedService>::NAME];
+
+/// Serves a [`Collector`] on `listener` until `stop` turns true, with the gRPC health service
+/// beside it (SERVING until `stop`), under the cluster's security rule ([`serve_secured`]): on
+/// loopback (`mapless train`'s supervisor) `security` may be empty; anywhere else (the compose
+/// cluster's `mapless monitor`) it needs TLS and a token, and `Report` takes the actor role's.
+pub async fn serve_collector(listener: TcpListener, security: &Security, tx: mpsc::Sender<EpisodeStats>, mut stop: watch::Receiver<bool>) -> Result<(), ServeError> {
+    let readiness = Readiness { grpc_names: GRPC_NAMES, health: Health::new(), ready: std::future::ready(()) };
+    let make = |auth: crate::serve::BearerAuth, _stopped: watch::Receiver<bool>| Routes::new(auth.wrap(StatsServiceServer::new(Collector { tx }).max_decoding_message_size(MAX_MESSAGE_BYTES)));
+    let shutdown = async move {
         let _ = stop.wait_for(|s| *s).await;
-        health.drain();
-    });
-    tokio::select! {
-        result = serving => result.map_err(|e| e.to_string()),
-        () = async { follow_health.await; std::future::pending().await } => unreachable!("pending"),
-    }
+    };
+    serve_secured("the stats collector", listener, security, Duration::from_secs(5), readiness, make, shutdown).await
 }

@@ -125,7 +125,7 @@ impl Cluster {
         let (ep_tx, episodes) = tokio::sync::mpsc::channel::<EpisodeStats>(8192);
         let (collector_stop, collector_stop_rx) = tokio::sync::watch::channel(false);
         rt.spawn(async move {
-            if let Err(e) = mapless_net::stats::serve_collector(stats_listener, ep_tx, collector_stop_rx).await {
+            if let Err(e) = mapless_net::stats::serve_collector(stats_listener, &Default::default(), ep_tx, collector_stop_rx).await {
                 tracing::error!(error = %e, "stats collector stopped");
             }
         });

@@ -507,12 +507,27 @@ pub(crate) fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, boo
     if let Some(m) = args.minutes {
         set_path(&mut doc, "stop.minutes", &m.to_string())?;
     }
-    for kv in &args.set {
-        let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
-        set_path(&mut doc, k.trim(), v.trim())?;
-        expand_shorthands(&mut doc, true)?;
-    }
+    apply_sets(&mut doc, &args.set)?;
     Ok((parse_config(doc)?.resolve()?, run, resuming))
+}
+
+/// `--set KEY=VALUE` overrides, in order, on a config document.
+fn apply_sets(doc: &mut serde_yaml::Value, sets: &[String]) -> Result<()> {
+    for kv in sets {
+        let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
+        set_path(doc, k.trim(), v.trim())?;
+        expand_shorthands(doc, true)?;
+    }
+    Ok(())
+}
+
+/// A preset (built-in name or file) with `--set`-style overrides, resolved: the settings a
+/// cluster that `mapless train` did not start runs by (`mapless monitor`).
+pub(crate) fn preset_with_sets(preset: &str, sets: &[String]) -> Result<TrainConfig> {
+    let mut doc: serde_yaml::Value = serde_yaml::from_str(&preset_text(preset)?).context("preset YAML")?;
+    expand_shorthands(&mut doc, false)?;
+    apply_sets(&mut doc, sets)?;
+    parse_config(doc)?.resolve()
 }
 
 #[cfg(test)]
@@ -582,6 +597,25 @@ mod tests {
             assert!(mounts(service).contains(&path(token)), "{service} mounts its metrics token");
         }
         assert!(mounts("prometheus").contains(&path(&actor.metrics_token_file)), "prometheus holds the metrics token");
+
+        // The monitor (the run folder): the actors report to it with their token, it judges the
+        // same preset, evaluates what the learner publishes and reads the services' /metrics.
+        let monitor = super::super::monitor::read_config(&dir.join("monitor.yaml")).unwrap();
+        assert_eq!(preset_with_sets(&monitor.preset, &monitor.set).unwrap().name, preset.name, "monitor.yaml: the cluster's preset");
+        assert_eq!(actor.stats, Some(format!("https://monitor:{}", monitor.stats_listen.port())), "actors report their episodes to the monitor");
+        assert!(monitor.tls.is_some() && monitor.auth_token_files.actor == roles.actor && monitor.auth_token_files.learner.is_none());
+        assert_eq!(Some(&monitor.policy_file), learner.policy_file.as_ref(), "the monitor evaluates the learner's published policy");
+        let port = |a: Option<std::net::SocketAddr>| a.expect("metrics_listen").port();
+        assert_eq!(monitor.replay_metrics, Some(format!("replay:{}", port(replay.metrics_listen))));
+        assert_eq!(monitor.learner_metrics, Some(format!("learner:{}", port(learner.metrics_listen))));
+        assert_eq!(monitor.metrics_token_file, actor.metrics_token_file);
+        let monitor_mounts = mounts("monitor");
+        for f in [&roles.actor, &monitor.metrics_token_file] {
+            assert!(monitor_mounts.contains(&path(f)), "{monitor_mounts:?}");
+        }
+        assert!(!monitor_mounts.contains(&path(&roles.learner)), "the monitor holds no learner token");
+        let policy_dir = monitor.policy_file.parent().expect("a folder").display().to_string();
+        assert!(compose["services"]["monitor"]["volumes"].as_sequence().unwrap().iter().any(|v| v.as_str() == Some(&format!("learner-data:{policy_dir}:ro"))), "the learner's volume, read-only");
     }
 
     #[test]

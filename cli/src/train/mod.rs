@@ -20,6 +20,7 @@
 //! (`episodes.csv`), `status.rs` (what the supervisor knows of the run now), `progress.rs`
 //! (what it prints), `evaluate.rs` (evaluations, `evals.csv`), `curves.rs` (`curves.png`),
 //! `stop.rs` (the stop rules), `summary.rs` (`summary.json`); this file runs them in order.
+//! `monitor.rs` runs the same pieces beside a cluster it did not start (`mapless monitor`).
 
 use std::time::{Duration, Instant};
 
@@ -32,6 +33,7 @@ mod curves;
 pub(crate) mod episodes;
 mod evaluate;
 mod folder;
+mod monitor;
 mod progress;
 mod restart;
 mod status;
@@ -42,6 +44,7 @@ pub(crate) use children::{sibling, start_service};
 #[cfg(test)]
 pub(crate) use config::PRESETS;
 pub(crate) use config::{TrainArgs, preset_config, read_run_config};
+pub(crate) use monitor::{MonitorArgs, monitor};
 pub(crate) use stop::INTERRUPTED;
 pub(crate) use summary::Summary;
 

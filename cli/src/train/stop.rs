@@ -163,6 +163,11 @@ impl StopRules {
         self.reason.is_some()
     }
 
+    /// Whether the criteria have been met (by the averages, and the evaluation they ask for).
+    pub(crate) fn met(&self) -> bool {
+        self.met_at.is_some()
+    }
+
     /// Whether the criteria have been met, backed by an evaluation (its policy becomes the
     /// run's policy).
     pub(crate) fn met_by_evaluation(&self) -> bool {

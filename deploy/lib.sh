@@ -1,0 +1,39 @@
+# deploy/lib.sh — what deploy/smoke.sh and deploy/scale.sh share: the compose command for the
+# project $project, waiting with a limit, and reading the learner's status lines, the replay's
+# /metrics (inside its network namespace: no port publishes it) and Prometheus's HTTP API.
+# Sourced from deploy/ with $me (the prefix of messages) and $project set.
+if command -v docker-compose >/dev/null; then compose=(docker-compose); else compose=(docker compose); fi
+dc() { "${compose[@]}" -p "$project" -f compose.yaml "$@"; }
+# What is left of the project: containers, networks, volumes (one line each).
+leftovers() {
+    local f="label=com.docker.compose.project=$project"
+    { docker ps -aq --filter "$f"; docker network ls -q --filter "$f"; docker volume ls -q --filter "$f"; } | sed '/^$/d'
+}
+# wait_for SECONDS WHAT COMMAND...: runs COMMAND every 2 s until it succeeds.
+wait_for() {
+    local limit=$1 what=$2; shift 2
+    local start=$SECONDS
+    until "$@"; do
+        if (( SECONDS - start > limit )); then echo "$me: timed out after ${limit}s waiting for: $what" >&2; return 1; fi
+        sleep 2
+    done
+    echo "$me: ok after $(( SECONDS - start ))s: $what"
+}
+# Newest learner status line: {"event":"status","updates":N,...,"weights_version":V}.
+learner_field() { dc logs --no-color learner 2>/dev/null | grep -o "\"$1\":[0-9]*" | tail -1 | cut -d: -f2; }
+# The replay's /metrics, read inside its network namespace, with the metrics token (as the
+# prometheus service reads it); `replay_metrics_status ARGS` prints the HTTP status instead.
+replay_metrics() {
+    local pid
+    pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
+    nsenter -t "$pid" -n curl -sf --max-time 5 -H "Authorization: Bearer $(cat secrets/metrics-token)" http://127.0.0.1:9464/metrics
+}
+replay_metrics_status() {
+    local pid
+    pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
+    nsenter -t "$pid" -n curl -s -o /dev/null -w '%{http_code}' --max-time 5 "$@" http://127.0.0.1:9464/metrics
+}
+# Prometheus's HTTP API on the host port compose published (MAPLESS_PROMETHEUS_PORT=0 in the callers).
+prom() { curl -sf --max-time 5 "http://$(dc port prometheus 9090)$1"; }
+# "JOB UP" for every target of `up`, one per line.
+prom_up() { prom "/api/v1/query?query=up" | python3 -c 'import json,sys; [print(r["metric"]["job"], r["value"][1]) for r in json.load(sys.stdin)["data"]["result"]]'; }
