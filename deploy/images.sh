@@ -87,9 +87,9 @@ PY
 stage() {
     local name="$1" bin="$2" sub="${3:+\"$3\", }" dir="target/images/$1" lib dest
     rm -rf "$dir"
-    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/etc" "$dir/root/tmp" "$dir/root/data" "$dir/root/train" "$dir/root/runs"
+    mkdir -p "$dir/root/usr/local/bin" "$dir/root/opt/mapless/lib" "$dir/root/etc" "$dir/root/tmp" "$dir/root/data" "$dir/root/train" "$dir/root/runs" "$dir/root/tmp/iceoryx2"
     chmod 1777 "$dir/root/tmp"
-    chmod 0750 "$dir/root/data" "$dir/root/train" "$dir/root/runs"
+    chmod 0750 "$dir/root/data" "$dir/root/train" "$dir/root/runs" "$dir/root/tmp/iceoryx2"
     printf 'root:x:0:0:root:/root:/sbin/nologin\nnonroot:x:%s:%s:nonroot:/data:/sbin/nologin\n' "$run_uid" "$run_uid" > "$dir/root/etc/passwd"
     printf 'root:x:0:\nnonroot:x:%s:\n' "$run_uid" > "$dir/root/etc/group"
     cp "$out_dir/$bin" "$dir/root/usr/local/bin/"
@@ -111,7 +111,7 @@ stage() {
         exit 1
     fi
     echo "images.sh: mapless-$name:$tag ($(du -shL "$dir/root" | cut -f1))" >&2
-    rootfs "$dir/root" 1 data train runs |
+    rootfs "$dir/root" 1 data train runs tmp/iceoryx2 |
         docker import \
             --change 'ENV LD_LIBRARY_PATH=/opt/mapless/lib' \
             --change "USER $run_uid:$run_uid" \

@@ -3,7 +3,13 @@
 # /metrics (inside its network namespace: no port publishes it) and Prometheus's HTTP API.
 # Sourced from deploy/ with $me (the prefix of messages) and $project set.
 if command -v docker-compose >/dev/null; then compose=(docker-compose); else compose=(docker compose); fi
-dc() { "${compose[@]}" -p "$project" -f compose.yaml "$@"; }
+# More compose files after compose.yaml (overrides), if the caller sets any.
+compose_overrides=()
+dc() {
+    local files=(-f compose.yaml) f
+    for f in "${compose_overrides[@]}"; do files+=(-f "$f"); done
+    "${compose[@]}" -p "$project" "${files[@]}" "$@"
+}
 # What is left of the project: containers, networks, volumes (one line each).
 leftovers() {
     local f="label=com.docker.compose.project=$project"

@@ -14,6 +14,11 @@
 # 4 env steps per update once it binds) and every container shares this machine's cores: the
 # figures show where the cores, not the code, stop the scaling.
 #
+# SERVICE=actor-shm scales the same actor writing over shared memory instead (its replicas mount
+# the replay's /dev/shm and iceoryx2 folder); LIMITER=off runs the replay without its rate limiter
+# (an override of config/replay.yaml with an unbounded error buffer), so the figures are what
+# the actors and the transport deliver rather than what the learner allows.
+#
 # Usage: deploy/scale.sh [COUNT...]   (default 1 2 4 8; WINDOW=60 SETTLE=20; SKIP_IMAGES=1 reuses
 #                                      built images; MAPLESS_TAG picks them, default local)
 # Root, as deploy/smoke.sh: the replay's /metrics is read inside its network namespace.
@@ -28,7 +33,20 @@ window="${WINDOW:-60}" settle="${SETTLE:-20}"
 ./certs.sh
 me=scale project=mapless-scale
 source ./lib.sh
-trap 'rc=$?; dc down -v >/dev/null 2>&1 || true; exit $rc' EXIT
+service="${SERVICE:-actor}" other=actor
+case "$service" in
+    actor) other=actor-shm ;;
+    actor-shm) ;;
+    *) echo "scale: SERVICE is actor or actor-shm, not $service" >&2; exit 2 ;;
+esac
+tmp=$(mktemp -d)
+if [ "${LIMITER:-on}" = off ]; then
+    sed 's/^\(    error_buffer:\).*/\1 1.0e12/' config/replay.yaml > "$tmp/replay.yaml"
+    grep -q "error_buffer: 1.0e12" "$tmp/replay.yaml" || { echo "scale: config/replay.yaml has no rate_limiter.error_buffer to lift" >&2; exit 1; }
+    printf 'services:\n  replay:\n    volumes:\n      - %s/replay.yaml:/config/replay.yaml:ro\n' "$tmp" > "$tmp/unlimited.yaml"
+    compose_overrides=("$tmp/unlimited.yaml")
+fi
+trap 'rc=$?; dc down -v >/dev/null 2>&1 || true; rm -rf "$tmp"; exit $rc' EXIT
 trap 'echo "scale: failed at line $LINENO: $BASH_COMMAND (exit $?)" >&2' ERR
 dc down -v >/dev/null 2>&1 || true
 
@@ -45,14 +63,14 @@ enough_writers() { [ "$(live_writers)" -ge "$1" ]; }
 first_update() { [ "$(learner_field updates)" -gt 0 ] 2>/dev/null; }
 
 start=$SECONDS
-dc up -d --scale actor="${counts[0]}" >/dev/null 2>&1
+dc up -d --scale "$service=${counts[0]}" --scale "$other=0" >/dev/null 2>&1
 wait_for 300 "the learner's first update" first_update
 to_update=$(( SECONDS - start ))
 echo "scale: ${to_update} s from up (images built) to the learner's first update"
 
 rows=()
 for n in "${counts[@]}"; do
-    dc up -d --scale actor="$n" >/dev/null 2>&1
+    dc up -d --scale "$service=$n" --scale "$other=0" >/dev/null 2>&1
     wait_for 180 "$n actor replicas write" enough_writers "$n"
     sleep "$settle"
     r0=$(counter replay_inserts_total); u0=$(learner_field updates); t0=$(date +%s.%N)
@@ -65,6 +83,7 @@ for n in "${counts[@]}"; do
 done
 
 echo
+echo "($service replicas, rate limiter ${LIMITER:-on})"
 echo "| actor replicas | env steps/s | updates/s | env steps/s per replica |"
 echo "|---:|---:|---:|---:|"
 for l in "${rows[@]}"; do awk -F, '{ printf "| %s | %s | %s | %s |\n", $1, $2, $3, $4 }' <<<"$l"; done

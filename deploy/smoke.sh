@@ -20,11 +20,16 @@
 #   4. `up -d --scale actor=N+2`: two new replicas register, take slots N and N+1, and write,
 #      and Prometheus finds and scrapes them by itself;
 #   5. `up -d --scale actor=2`: two replicas are left and keep writing;
-#   6. `restart replay`: its rows come back from its volume and the actors write again;
+#   5b. `--scale actor-shm=1`: a replica that mounts the replay's /dev/shm and iceoryx2 folder
+#      writes over shared memory; killed with SIGKILL, it is restarted on its
+#      slot, and the replay removes the dead writer's iceoryx2 resources;
+#   6. `restart replay`: its rows come back from its volume and the actors (both transports)
+#      write again;
 #   7. one replica cut off the network for 15 s (`docker network disconnect`) writes again once
 #      reconnected;
-#   8. the two replicas, stopped, each report the rows they sent, all acknowledged, and the
-#      replay holds exactly that many under each one's id (nothing lost, nothing twice);
+#   8. the three replicas (two over gRPC, one over shared memory), stopped, each report the
+#      rows they sent, all acknowledged, and the replay holds exactly that many under each one's
+#      id (nothing lost, nothing twice);
 #   9. `docker-compose stop` ends the learner with a final checkpoint, and the monitor with
 #      summary.json (a final evaluation of the learner's policy), curves.png, evals.csv and eval/
 #      in its run folder, whose episodes.csv (checked at step 2) held every replica's episodes;
@@ -188,6 +193,24 @@ both_grow() {
 wait_for 120 "scaled to 2: the two replicas left (${!before[*]}) keep writing" both_grow
 echo "smoke: learner at $(learner_field updates) updates, weights v$(learner_field weights_version)"
 
+# Shared memory between containers: an actor-shm replica (the replay's /dev/shm and iceoryx2
+# folder, two volumes) registers over gRPC for the next slot and writes over shared memory (it
+# has no gRPC sink); killed with SIGKILL, it is restarted, the replay finds its iceoryx2 node dead
+# (a file lock the kernel released) and removes its resources, and the new incarnation writes.
+dc up -d --scale actor=2 --scale actor-shm=1 >/dev/null 2>&1
+shm_c=$(dc ps -q actor-shm)
+shm_writes() { local id; id=$(id_of "$shm_c"); [ -n "$id" ] && [ -n "$(rows_of "$id")" ]; }
+wait_for 120 "the actor-shm replica (slot $(slot_of "$shm_c")) writes over shared memory" shm_writes
+shm_old=$(id_of "$shm_c")
+kill -9 "$(docker inspect -f '{{.State.Pid}}' "$shm_c")"
+shm_again() { local id; id=$(id_of "$shm_c"); [ "$id" != "$shm_old" ] && [ -n "$(rows_of "$id")" ]; }
+wait_for 120 "killed with SIGKILL, the actor-shm replica is restarted and its new incarnation writes" shm_again
+dead_cleaned() { dc logs --no-color replay 2>/dev/null | grep "resources of dead iceoryx2 nodes" >/dev/null; }
+wait_for 60 "the replay removed the dead writer's iceoryx2 resources" dead_cleaned
+[ "$(slot_of "$shm_c")" = "$(cut -d- -f2 <<<"$shm_old")" ] || { echo "smoke: the restarted actor-shm replica changed slot" >&2; exit 1; }
+echo "smoke: ok: actor-shm $shm_old, killed, came back as $(id_of "$shm_c") on its slot, over shared memory"
+before[$(id_of "$shm_c")]=$(rows_of "$(id_of "$shm_c")")
+
 # Rows in the replay's table (the exposition writes floats).
 table_size() { replay_metrics | sed -n 's/^replay_size{.*} \([0-9.e+]*\)$/\1/p' | awk '{ printf "%d", $1 }'; }
 # Records every id in `before`'s rows now (both_grow then asks for more).
@@ -223,8 +246,8 @@ wait_for 120 "the cut-off replica is back and writes again" both_grow
 # Exactly-once: each actor, stopped, prints a report of the rows it handed to its sink and
 # whether all were acknowledged; the replay must hold exactly that many rows under its id, after
 # a replay restart and a network cut (resends are acknowledged as duplicates, not stored twice).
-ids=$(dc ps -q actor)
-dc stop -t 60 actor >/dev/null 2>&1
+ids=$(dc ps -q actor actor-shm)
+dc stop -t 60 actor actor-shm >/dev/null 2>&1
 for c in $ids; do
     report=$(docker logs "$c" 2>/dev/null | grep '^{"actor_id"' | tail -1)
     id=$(grep -o '"actor_id":"[^"]*"' <<<"$report" | cut -d'"' -f4)

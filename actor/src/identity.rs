@@ -71,8 +71,11 @@ pub fn resolve_index(cfg: &ActorConfig, index: IndexArg, name: Option<&str>, sto
 }
 
 fn register(cfg: &ActorConfig, name: &str, stop: &AtomicBool) -> anyhow::Result<Option<u32>> {
-    let ReplayTarget::Grpc { uri } = &cfg.replay else {
-        bail!("--index auto registers with the replay over gRPC, but this actor reaches the replay over shared memory; pass --index N");
+    let uri = match &cfg.replay {
+        ReplayTarget::Grpc { uri } | ReplayTarget::Shm { register: Some(uri), .. } => uri,
+        ReplayTarget::Shm { register: None, .. } => {
+            bail!("--index auto registers with the replay over gRPC, but this actor reaches the replay over shared memory with no `replay.register` address; add it, or pass --index N")
+        }
     };
     let endpoint = cfg.security.endpoint(uri)?;
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;

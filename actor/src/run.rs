@@ -36,12 +36,18 @@ use crate::{ActMode, ExplorationNoise, NoiseProcess, Policy};
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum ReplayTarget {
-    /// iceoryx2 shared memory (the replay runs on this host).
+    /// iceoryx2 shared memory (the replay runs on this host, or in a container whose /dev/shm
+    /// and iceoryx2 folder this one mounts: deploy/compose.yaml's `actor-shm`).
     Shm {
         /// The ingest's service-name prefix and domain, as the replay service was given.
         prefix: String,
         #[serde(default)]
         domain: String,
+        /// The same replay's gRPC address, for `--index auto` only: the slot comes from
+        /// `RegisterActor` over gRPC (with `security`), the rows over shared memory. None: the
+        /// index must be given (`--index N`), as `mapless train` gives it.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        register: Option<String>,
     },
     /// gRPC `Insert`, e.g. `http://127.0.0.1:50051`.
     Grpc { uri: String },
@@ -215,7 +221,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         None => None,
     };
     let mut sink = match &cfg.replay {
-        ReplayTarget::Shm { prefix, domain } => {
+        ReplayTarget::Shm { prefix, domain, .. } => {
             let mut shm = ShmConfig { prefix: prefix.clone(), domain: domain.clone(), ..ShmConfig::default() };
             shm.max_in_flight = cfg.max_in_flight;
             // Short waits while the window is full, so a stop request is seen within 0.5 s

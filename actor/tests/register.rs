@@ -40,8 +40,14 @@ struct Replay {
 
 impl Replay {
     fn start(data_dir: &Path, obs_dim: usize) -> Replay {
+        Replay::start_with(data_dir, obs_dim, &["--no-shm"])
+    }
+
+    fn start_with(data_dir: &Path, obs_dim: usize, extra: &[&str]) -> Replay {
         let mut child = Command::new(replay_bin())
-            .args(["--listen", "127.0.0.1:0", "--no-metrics", "--no-shm", "--capacity", "100000", "--min-size-to-sample", "1", "--obs-dim", &obs_dim.to_string(), "--data-dir"])
+            .args(["--listen", "127.0.0.1:0", "--no-metrics", "--capacity", "100000", "--min-size-to-sample", "1", "--obs-dim", &obs_dim.to_string()])
+            .args(extra)
+            .arg("--data-dir")
             .arg(data_dir)
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())
@@ -207,6 +213,40 @@ fn replicas_with_index_auto_get_distinct_slots_and_keep_them_across_restarts() {
     let expected: BTreeMap<String, u64> = [&a, &b, &a2, &b2, &c].iter().map(|f| (f.actor_id.clone(), STEPS)).collect();
     assert_eq!(rows, expected);
     replay.stop();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// An actor that writes over shared memory (a container sharing the replay's IPC namespace and
+/// iceoryx2 folder, deploy/compose.yaml's `actor-shm`) registers over gRPC (`replay.register`)
+/// and delivers its rows through shared memory, once each; without the address, `--index auto`
+/// is refused with a clear error.
+#[test]
+fn an_actor_on_shared_memory_takes_its_slot_over_grpc() {
+    let dir = std::env::temp_dir().join(format!("mapless-actor-register-shm-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let (prefix, domain) = (format!("mapless-test/register-{}", std::process::id()), format!("mreg{}", std::process::id()));
+    let shm = dir.join("replay-shm.yaml");
+    std::fs::write(&shm, format!("shm:\n  prefix: {prefix}\n  domain: {domain}\n")).unwrap();
+    let replay = Replay::start_with(&dir.join("replay"), EnvConfig::default().obs_dim(), &["--config", shm.to_str().unwrap()]);
+    let grpc = actor_config(&dir, replay.addr);
+    let mut cfg: ActorConfig = serde_yaml::from_str(&std::fs::read_to_string(&grpc).unwrap()).unwrap();
+    cfg.replay = ReplayTarget::Shm { prefix: prefix.clone(), domain: domain.clone(), register: Some(format!("http://{}", replay.addr)) };
+    let config = dir.join("actor-shm.yaml");
+    std::fs::write(&config, serde_yaml::to_string(&cfg).unwrap()).unwrap();
+
+    let a = finish(spawn_actor(&config, "shm-host", false));
+    assert_eq!(slot_of(&a.actor_id), 0, "{}", a.actor_id);
+    assert!(a.log.contains("registered with the replay"), "{}", a.log);
+    assert_eq!(rows_by_actor(&replay.info()), BTreeMap::from([(a.actor_id.clone(), STEPS)]), "every row once, over shared memory");
+
+    cfg.replay = ReplayTarget::Shm { prefix, domain: domain.clone(), register: None };
+    std::fs::write(&config, serde_yaml::to_string(&cfg).unwrap()).unwrap();
+    let out = spawn_actor(&config, "shm-host", false).wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && log.contains("replay.register") && !log.contains("panicked"), "{log}");
+    replay.stop();
+    mapless_net::shm::remove_private_domain_files(&domain);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

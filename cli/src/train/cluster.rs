@@ -138,7 +138,7 @@ impl Cluster {
             exploration: ExplorationSettings { warmup_steps: if resuming { 0 } else { cfg.actors.warmup_steps }, noise: cfg.noise() },
             batch_rows: cfg.actors.batch_rows,
             max_in_flight: 8,
-            replay: ReplayTarget::Shm { prefix: shm.prefix.clone(), domain: shm.domain.clone() },
+            replay: ReplayTarget::Shm { prefix: shm.prefix.clone(), domain: shm.domain.clone(), register: None },
             weights: format!("http://{weights_addr}"),
             stats: Some(format!("http://{stats_addr}")),
             security: Default::default(),

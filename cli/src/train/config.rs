@@ -598,6 +598,22 @@ mod tests {
         }
         assert!(mounts("prometheus").contains(&path(&actor.metrics_token_file)), "prometheus holds the metrics token");
 
+        // actor-shm: the same actor over shared memory, registering over gRPC with the same
+        // security, the replay's ingest prefix; it holds the actor's token only.
+        let shm: ActorConfig = serde_yaml::from_str(&read("actor-shm.yaml")).unwrap();
+        shm.validate().expect("actor-shm.yaml passes the actor's checks");
+        let mut same = yaml(&shm);
+        same["replay"] = yaml(&actor.replay);
+        assert_eq!(same, yaml(&actor), "actor-shm.yaml is actor.yaml but for `replay`");
+        let ReplayTarget::Grpc { uri } = &actor.replay else { unreachable!("checked above") };
+        assert!(replay.shm_enabled, "the replay serves the shared-memory ingest");
+        assert!(matches!(&shm.replay, ReplayTarget::Shm { prefix, register: Some(r), .. } if *prefix == replay.shm_config().prefix && r == uri), "{:?}", shm.replay);
+        let shm_mounts = mounts("actor-shm");
+        assert!(shm_mounts.contains(&path(&roles.actor)) && !shm_mounts.contains(&path(&roles.learner)), "{shm_mounts:?}");
+        for shared in ["/tmp/iceoryx2", "/dev/shm"] {
+            assert!(shm_mounts.contains(&shared.to_owned()) && mounts("replay").contains(&shared.to_owned()), "{shared} is shared by the replay and actor-shm");
+        }
+
         // The monitor (the run folder): the actors report to it with their token, it judges the
         // same preset, evaluates what the learner publishes and reads the services' /metrics.
         let monitor = super::super::monitor::read_config(&dir.join("monitor.yaml")).unwrap();
