@@ -20,6 +20,9 @@ cd "$here"
 export MAPLESS_TAG="${MAPLESS_TAG:-local}"
 stack=mapless-swarm
 [ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
+# wait_for (deploy/lib.sh; its compose helpers go unused here).
+me=swarm project=$stack
+source ./lib.sh
 ./certs.sh
 say() { echo "swarm: $*"; }
 made_swarm=0
@@ -49,15 +52,6 @@ docker node update --label-add mapless.replay=true --label-add mapless.learner=t
 docker stack deploy --resolve-image never -c stack.yaml "$stack" >/dev/null
 say "deployed $stack"
 
-wait_for() {
-    local limit=$1 what=$2; shift 2
-    local start=$SECONDS
-    until "$@"; do
-        if (( SECONDS - start > limit )); then echo "swarm: timed out after ${limit}s waiting for: $what" >&2; return 1; fi
-        sleep 2
-    done
-    say "ok after $(( SECONDS - start ))s: $what"
-}
 # The running containers of a service.
 tasks() { docker ps -q --filter "label=com.docker.swarm.service.name=${stack}_$1" --filter status=running; }
 healthy() {
