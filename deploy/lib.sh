@@ -39,6 +39,17 @@ replay_metrics_status() {
     pid=$(docker inspect -f '{{.State.Pid}}' "$(dc ps -q replay)")
     nsenter -t "$pid" -n curl -s -o /dev/null -w '%{http_code}' --max-time 5 "$@" http://127.0.0.1:9464/metrics
 }
+# "ID ROWS" per actor id, from /metrics text on stdin (replay_actor_rows_total).
+actor_rows_in() { sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p'; }
+# growing_ids CMD...: the actor ids whose row counts grow over 3 s, sorted, one per line; CMD
+# prints the replay's /metrics (replay_metrics here, a Swarm task's in deploy/swarm.sh).
+growing_ids() {
+    local a b
+    a=$("$@" | actor_rows_in)
+    sleep 3
+    b=$("$@" | actor_rows_in)
+    join <(sort -k1,1 <<<"$a") <(sort -k1,1 <<<"$b") | awk '$3 > $2 { print $1 }' | sort
+}
 # Prometheus's HTTP API on the host port compose published (MAPLESS_PROMETHEUS_PORT=0 in the callers).
 prom() { curl -sf --max-time 5 "http://$(dc port prometheus 9090)$1"; }
 # "JOB UP" for every target of `up`, one per line.

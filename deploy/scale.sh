@@ -51,14 +51,8 @@ trap 'echo "scale: failed at line $LINENO: $BASH_COMMAND (exit $?)" >&2' ERR
 dc down -v >/dev/null 2>&1 || true
 
 counter() { replay_metrics | sed -n "s/^$1{.*} \([0-9.e+]*\)\$/\1/p" | awk '{ s += $1 } END { printf "%d", s }'; }
-# Actor ids whose row counts grow: the live replicas (a scaled-down or restarted one stops).
-live_writers() {
-    local a b
-    a=$(replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p')
-    sleep 3
-    b=$(replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p')
-    join <(sort -k1,1 <<<"$a") <(sort -k1,1 <<<"$b") | awk '$3 > $2' | wc -l
-}
+# The live replicas: actor ids whose row counts grow (a scaled-down or restarted one stops).
+live_writers() { growing_ids replay_metrics | wc -l; }
 enough_writers() { [ "$(live_writers)" -ge "$1" ]; }
 first_update() { [ "$(learner_field updates)" -gt 0 ] 2>/dev/null; }
 

@@ -79,7 +79,7 @@ learner_versions() { local v; v=$(learner_field weights_version); [ "${v:-0}" -g
 # Prometheus scraped the replay, the learner and N actor replicas, each up.
 prom_scraped() { [ "$(prom_up | sort | uniq -c | awk '$3 == 1 {printf "%s=%s ", $2, $1}')" = "actor=$1 learner=1 replay=1 " ]; }
 # Actor ids with rows in the replay, and their row counts: "actor-<slot>-<pid>-<ms> ROWS".
-actor_rows() { replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p' | awk '$2 > 0'; }
+actor_rows() { replay_metrics | actor_rows_in | awk '$2 > 0'; }
 # Their slots, space-separated and sorted: "0 1 2 3".
 slots_writing() { actor_rows | cut -d- -f2 | sort -un | tr '\n' ' ' | sed 's/ $//'; }
 want_slots() { [ "$(slots_writing)" = "$1" ]; }

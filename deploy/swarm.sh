@@ -69,13 +69,7 @@ healthy() {
 in_netns() { local c=$1; shift; nsenter -t "$(docker inspect -f '{{.State.Pid}}' "$c")" -n "$@"; }
 replay_metrics() { in_netns "$(tasks replay | head -1)" curl -sf --max-time 5 -H "Authorization: Bearer $(cat secrets/metrics-token)" http://127.0.0.1:9464/metrics; }
 # Actor ids whose row counts grow over 3 s: "actor-<slot>-…".
-writing() {
-    local a b
-    a=$(replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p')
-    sleep 3
-    b=$(replay_metrics | sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p')
-    join <(sort -k1,1 <<<"$a") <(sort -k1,1 <<<"$b") | awk '$3 > $2 { print $1 }' | sort
-}
+writing() { growing_ids replay_metrics; }
 writers() { [ "$(writing | wc -l)" -ge "$1" ]; }
 learner_updates() { docker service logs "${stack}_learner" 2>/dev/null | grep -o '"updates":[0-9]*' | tail -1 | cut -d: -f2; }
 learner_learns() { [ "$(learner_updates)" -gt 100 ] 2>/dev/null; }

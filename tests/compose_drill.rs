@@ -5,7 +5,11 @@
 //! restarted on its slot, scaling to 6 (Prometheus finds the new replicas) and back to 2, a
 //! replay restart that keeps its rows, an actor cut off the network and reconnected,
 //! exactly-once delivery per actor, a final checkpoint and a teardown that leaves nothing
-//! behind. It needs a Docker engine, root (it kills an actor's process and reads the replay's
+//! behind. Then `deploy/swarm.sh` drills the Swarm stack (deploy/stack.yaml) on the same images
+//! in a single-node swarm: `docker stack deploy`, healthy non-root tasks, replicas named by task
+//! slot, `docker service scale` to 4 with Prometheus finding them, a killed task replaced on its
+//! slot, and `docker stack rm` leaving nothing (the swarm is left again if the drill made it).
+//! It needs a Docker engine, root (it kills an actor's process and reads the replay's
 //! unpublished `/metrics` from inside its container's network namespace) and apt-get (the
 //! Prometheus image is Debian's package); where no engine answers `docker info` it says so and
 //! skips.
@@ -14,7 +18,7 @@ use std::path::Path;
 use std::process::Command;
 
 #[test]
-fn the_compose_cluster_scales_survives_faults_and_delivers_exactly_once() {
+fn the_compose_cluster_and_the_swarm_stack_scale_survive_faults_and_deliver_exactly_once() {
     match Command::new("docker").args(["info", "--format", "{{.ServerVersion}}"]).output() {
         Ok(out) if out.status.success() => {}
         Ok(out) => {
@@ -35,4 +39,12 @@ fn the_compose_cluster_scales_survives_faults_and_delivers_exactly_once() {
         .status()
         .expect("bash runs deploy/smoke.sh");
     assert!(status.success(), "deploy/smoke.sh failed: its steps and the cluster's last log lines are above");
+    let status = Command::new("bash")
+        .arg(root.join("deploy/swarm.sh"))
+        // The images deploy/smoke.sh has just built.
+        .env("SKIP_IMAGES", "1")
+        .env("MAPLESS_TAG", "suite")
+        .status()
+        .expect("bash runs deploy/swarm.sh");
+    assert!(status.success(), "deploy/swarm.sh failed: its steps and the services' last log lines are above");
 }
