@@ -38,6 +38,16 @@ command -v docker >/dev/null || { echo "images.sh: docker not found" >&2; exit 1
 # A LIBTORCH already set in the environment wins, as in .cargo/config.toml (no install then).
 if [ -z "${LIBTORCH:-}" ]; then bash scripts/setup-torch.sh; fi
 echo "images.sh: building the binaries ($profile)" >&2
+# Without the variables cargo sets for one crate (CARGO_MANIFEST_DIR, CARGO_PKG_*, OUT_DIR, …:
+# present when a test runs this): ring's build script reruns when they differ from the last
+# build's, and everything above it is recompiled (tests/common/workspace_build.rs).
+unset_per_crate=()
+while IFS='=' read -r name _; do
+    case "$name" in
+        CARGO_PKG_* | CARGO_MANIFEST_* | CARGO_CRATE_* | CARGO_BIN_EXE_* | CARGO_CFG_* | OUT_DIR | CARGO_TARGET_TMPDIR | CARGO_PRIMARY_PACKAGE | CARGO_BIN_NAME | CARGO_RUSTC_CURRENT_DIR | CARGO_MAKEFLAGS) unset_per_crate+=(-u "$name") ;;
+    esac
+done < <(env)
+cargo() { env "${unset_per_crate[@]}" cargo "$@"; }
 if [ "$profile" = dev ]; then
     # The test suite's own binaries (tests/compose_drill.rs): the suite's target selection, so
     # this finds them built. `-p …` would resolve features differently and rerun ring's build

@@ -11,6 +11,11 @@
 //!                                                      | id bytes | prost TransitionBatch
 //!                  BatchHeader::actor_id ─► shm::decode_payload ─► Table::insert_encoded
 //!                                                                   (the shared-memory path)
+//!   replay_requests [config byte] frame*       frame = len u16 | kind u8 | prost message
+//!                  kind % 3 = 0: TransitionBatch ─► Table::insert           (Insert)
+//!                             1: SampleRequest ─► validate ─► Table::sample_as (Sample)
+//!                             2: PriorityUpdate ─► validate ─► Table::update_priorities
+//!                  (the config byte also picks the priority exponent α and ε)
 //!   wal_recovery   [base byte] op*             a valid directory written by DurableTable,
 //!                  then flipped, truncated, swapped, deleted, copied bytes and files
 //!                  ─► persist::recovery::recover, twice
@@ -32,7 +37,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use mapless_net::shm::BatchHeader;
-use mapless_proto::v1::{SampledBatch, TransitionBatch};
+use mapless_proto::v1::{PriorityUpdate, SampleRequest, SampledBatch, TransitionBatch};
 use mapless_proto::{FloatColumn, FloatEncoding, MAX_ACTOR_ID_BYTES, Transition, TransitionBatchBuilder};
 use prost::Message;
 use prost::bytes::Bytes;
@@ -262,6 +267,89 @@ pub fn replay_ingest(data: &[u8]) {
             Ok(batch) => {
                 let result = table.insert(&batch, Some(Instant::now()));
                 model.apply(&batch, result);
+            }
+        }
+        model.check(&table);
+    }
+}
+
+/// The table a `replay_requests` config byte picks: [`ingest_config`]'s (bits 0–1), with the
+/// prioritised sampler's α from bits 2–3 (0.6 as the presets, 1, 3: weights (p + ε)^α that
+/// overflow for large priorities, 0: every row alike) and ε from bit 4 (1e-6, or 0: rows of
+/// priority 0 have no mass).
+fn requests_config(byte: u8) -> TableConfig {
+    let mut cfg = ingest_config(byte);
+    if let SamplerConfig::Prioritized { alpha, epsilon, .. } = &mut cfg.sampler {
+        *alpha = [0.6, 1.0, 3.0, 0.0][usize::from((byte >> 2) & 3)];
+        *epsilon = if byte & 16 == 0 { 1e-6 } else { 0.0 };
+    }
+    cfg
+}
+
+/// The replay's other requests on arbitrary bytes, between inserts: each frame's first byte
+/// picks the message, the rest is decoded with prost as tonic decodes it and checked as
+/// `grpc::ReplayService` checks it before the table sees it. A Sample request that passes is
+/// answered with a minibatch of stored rows whose probabilities and importance weights are in
+/// (0, 1] (an empty table: the rate limiter's deadline); a priority update that passes is
+/// applied to exactly the keys still stored and changes no row. After every frame the table
+/// holds what the model says (as in [`replay_ingest`]).
+pub fn replay_requests(data: &[u8]) {
+    let Some((&config, rest)) = data.split_first() else { return };
+    let cfg = requests_config(config);
+    let table = Table::new(cfg.clone(), u64::from(config)).expect("valid config");
+    let mut model = Model::new(cfg.capacity);
+    for frame in frames(rest) {
+        let Some((&kind, msg)) = frame.split_first() else { continue };
+        match kind % 3 {
+            0 => match TransitionBatch::decode(Bytes::copy_from_slice(msg)) {
+                Err(e) => {
+                    table.record_rejection("", &format!("malformed TransitionBatch: {e}"));
+                    model.reject("");
+                }
+                Ok(batch) => {
+                    let result = table.insert(&batch, Some(Instant::now()));
+                    model.apply(&batch, result);
+                }
+            },
+            1 => {
+                let Ok(req) = SampleRequest::decode(Bytes::copy_from_slice(msg)) else { continue };
+                let Ok(rows) = req.validate(cfg.max_sample_rows) else { continue };
+                let floats = if req.float_columns_as_bytes { FloatEncoding::F32Le } else { FloatEncoding::Packed };
+                let first = model.next_key - model.rows.len() as u64;
+                match table.sample_as(rows, Some(f64::from(req.importance_beta)), Some(Instant::now()), floats) {
+                    Ok(batch) => {
+                        if let Err(e) = batch.validate(OBS_DIM, ACT_DIM, cfg.max_sample_rows) {
+                            panic!("a minibatch that does not validate: {e}; probabilities {:?} weights {:?}", batch.probabilities, batch.importance_weights);
+                        }
+                        assert_eq!(batch.num_rows as usize, rows, "asked for {rows} rows");
+                        for i in 0..rows {
+                            let got = sampled_row(&batch, i);
+                            let want = got.key.checked_sub(first).and_then(|j| model.rows.get(j as usize));
+                            assert!(want.is_some_and(|w| same_row(&got, w)), "sampled key {} is {got:?}, stored {want:?}", got.key);
+                        }
+                        let unit = |x: f64| x > 0.0 && x <= 1.0;
+                        assert!(batch.probabilities.iter().all(|&p| unit(p)), "probabilities outside (0, 1]: {:?}", batch.probabilities);
+                        assert!(batch.importance_weights.iter().all(|&w| unit(f64::from(w))), "importance weights outside (0, 1]: {:?} (β {})", batch.importance_weights, req.importance_beta);
+                    }
+                    Err(ReplayError::DeadlineExceeded { .. }) => assert_eq!(table.size(), 0, "a table of {} rows refused to sample {rows}", table.size()),
+                    Err(e) => panic!("a Sample request that validates ({req:?}) failed: {e}"),
+                }
+            }
+            _ => {
+                let Ok(update) = PriorityUpdate::decode(Bytes::copy_from_slice(msg)) else { continue };
+                // The server answers FAILED_PRECONDITION for a uniform table, and refuses what
+                // does not validate, before the table sees either.
+                if cfg.sampler == SamplerConfig::Uniform || update.validate(crate::grpc::MAX_PRIORITY_KEYS).is_err() {
+                    continue;
+                }
+                let first = model.next_key - model.rows.len() as u64;
+                let held = update.keys.iter().filter(|&&k| k >= first && k < model.next_key).count();
+                match table.update_priorities(&update.keys, &update.priorities) {
+                    Ok((updated, unknown)) => {
+                        assert_eq!((updated as usize, unknown as usize), (held, update.keys.len() - held), "(updated, unknown) for keys {:?}; stored keys {first}..{}", update.keys, model.next_key)
+                    }
+                    Err(e) => panic!("a priority update that validates failed: {e}"),
+                }
             }
         }
         model.check(&table);

@@ -6,7 +6,7 @@
 //! `MAPLESS_WRITE_FUZZ_SEEDS=1 cargo test -p mapless-replay --test fuzz_corpora -- --ignored`
 //! (docs/reliability.md, "Fuzzing").
 
-use mapless_proto::v1::TransitionBatch;
+use mapless_proto::v1::{PriorityUpdate, ProtocolVersion, SampleRequest, TransitionBatch};
 use mapless_replay::fuzzing::{self, frame_all, op, seed_batches, shm_frame};
 use prost::Message;
 
@@ -25,6 +25,11 @@ fn shm_wire_corpus_and_regressions() {
 }
 
 #[test]
+fn replay_requests_corpus_and_regressions() {
+    assert!(replay_inputs("replay_requests", fuzzing::replay_requests) > 0, "no committed inputs for replay_requests");
+}
+
+#[test]
 fn wal_recovery_corpus_and_regressions() {
     assert!(replay_inputs("wal_recovery", fuzzing::wal_recovery) > 0, "no committed inputs for wal_recovery");
 }
@@ -35,6 +40,7 @@ fn the_seeds_pass_their_harnesses() {
         match target {
             "replay_ingest" => fuzzing::replay_ingest(&data),
             "shm_wire" => fuzzing::shm_wire(&data),
+            "replay_requests" => fuzzing::replay_requests(&data),
             _ => fuzzing::wal_recovery(&data),
         }
     }
@@ -121,6 +127,36 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
         .collect();
     out.push(("shm_wire", "broken-batches".into(), frame_all(2, &shm_broken)));
 
+    // replay_requests: config byte, frames of kind byte + prost bytes.
+    let tagged = |kind: u8, bytes: Vec<u8>| [vec![kind], bytes].concat();
+    let v1 = ProtocolVersion::V1 as i32;
+    let sample = |batch_size: u32, importance_beta: f32, float_columns_as_bytes: bool| {
+        tagged(1, SampleRequest { protocol_version: v1, batch_size, importance_beta, float_columns_as_bytes, ..Default::default() }.encode_to_vec())
+    };
+    let priorities = |keys: Vec<u64>, priorities: Vec<f64>| tagged(2, PriorityUpdate { protocol_version: v1, keys, priorities, ..Default::default() }.encode_to_vec());
+    let mut session = vec![sample(4, 0.4, false)]; // an empty table: the rate limiter's deadline
+    session.extend(valid.iter().cloned().map(|b| tagged(0, b)));
+    session.extend([
+        sample(4, 0.4, false),
+        sample(8, 1.0, true),
+        priorities(vec![0, 1, 2, 3], vec![0.5, 2.0, 0.0, 1e3]),
+        priorities(vec![3, 3, 1000], vec![1.0, 7.0, 1.0]), // a repeated and an unknown key
+        sample(8, 0.0, false),
+        priorities(vec![1, 2], vec![1e200, 0.0]), // far apart
+        sample(5, 1.0, true),
+        priorities(vec![1], vec![f64::NAN]), // refused
+        priorities(vec![1, 2], vec![1.0]),   // refused
+        sample(0, 0.4, false),               // refused
+        sample(9, 0.4, false),               // refused: above max_sample_rows
+        sample(2, 1.5, false),               // refused
+        tagged(1, b"not a protobuf message".to_vec()),
+        tagged(2, vec![0x0a, 0xff, 0xff, 0xff, 0xff, 0x0f]),
+    ]);
+    // config bytes: 1: prioritised α 0.6; 9 (8|1): α 3; 13 (12|1): α 0; 17 (16|1): ε 0; 0: uniform.
+    for config in [1u8, 9, 13, 17, 0, 3] {
+        out.push(("replay_requests", format!("session-config-{config}"), frame_all(config, &session)));
+    }
+
     // wal_recovery: base byte, ops.
     // Files are sorted by path: the snapshot (if any) first, then the segments in LSN order.
     let seg = |kind: u8, i: usize| (fuzzing::base_files(kind).iter().position(|(n, _)| n.starts_with("wal/")).unwrap() + i) as u8;
@@ -147,7 +183,7 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
 #[test]
 #[ignore]
 fn write_seed_corpora() {
-    for target in ["replay_ingest", "shm_wire", "wal_recovery"] {
+    for target in ["replay_ingest", "shm_wire", "replay_requests", "wal_recovery"] {
         fuzz_corpus::write_seeds(target, seeds().into_iter().filter(|(t, _, _)| *t == target).map(|(_, name, data)| (name, data)));
     }
 }

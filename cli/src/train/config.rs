@@ -359,7 +359,7 @@ pub(crate) fn read_run_document(run: &Path) -> Result<serde_yaml::Value> {
 /// (`seed`, `env.sensor.…`) carries to them, and fields that older versions wrote are read
 /// the way they meant (`learner.replay_capacity`, read by nothing, dropped; `actors.noise`, now
 /// the algorithm's `learner.{ddpg,td3}.exploration`, dropped when empty).
-pub(crate) fn run_document(text: &str) -> Result<serde_yaml::Value> {
+pub fn run_document(text: &str) -> Result<serde_yaml::Value> {
     let mut doc: serde_yaml::Value = serde_yaml::from_str(text).context("not YAML")?;
     for (section, field) in [("learner", "seed"), ("replay", "obs_dim"), ("replay", "act_dim"), ("learner", "replay_capacity")] {
         if let Some(m) = doc.get_mut(section).and_then(|v| v.as_mapping_mut()) {
@@ -380,7 +380,7 @@ pub(crate) fn run_document(text: &str) -> Result<serde_yaml::Value> {
 /// `env.episode.max_steps`. In a document (a preset, a run's config.yaml) fields it states under
 /// `env` win over its shorthand; a shorthand given by `--set` (`later_wins`) replaces what the
 /// document said, as any later `--set` does.
-pub(crate) fn expand_shorthands(doc: &mut serde_yaml::Value, later_wins: bool) -> Result<()> {
+pub fn expand_shorthands(doc: &mut serde_yaml::Value, later_wins: bool) -> Result<()> {
     let Some(map) = doc.as_mapping_mut() else { return Ok(()) };
     if let Some(r) = map.remove("reward").filter(|v| !v.is_null()) {
         let name = r.as_str().with_context(|| format!("reward: expected a preset name (exploration, search_and_rescue), got {r:?}"))?;
@@ -512,7 +512,7 @@ pub(crate) fn load_config(args: &TrainArgs) -> Result<(TrainConfig, PathBuf, boo
 }
 
 /// `--set KEY=VALUE` overrides, in order, on a config document.
-fn apply_sets(doc: &mut serde_yaml::Value, sets: &[String]) -> Result<()> {
+pub fn apply_sets(doc: &mut serde_yaml::Value, sets: &[String]) -> Result<()> {
     for kv in sets {
         let (k, v) = kv.split_once('=').with_context(|| format!("--set {kv}: expected KEY=VALUE"))?;
         set_path(doc, k.trim(), v.trim())?;

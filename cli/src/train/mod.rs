@@ -28,7 +28,7 @@ use anyhow::Result;
 
 mod children;
 mod cluster;
-mod config;
+pub mod config;
 mod curves;
 pub(crate) mod episodes;
 mod evaluate;
