@@ -487,25 +487,14 @@ pub fn soak(a: SoakArgs) -> Result<()> {
     let replay_cmd = vec![p(&sibling("mapless-replay")?), "--config".into(), p(&dir.join("replay.yaml"))];
     let (mut replay, replay_addr, _) = start_service("replay", replay_cmd, dir.join("logs/replay.log"), "listening on ", &line_rx, &line_tx)?;
 
-    let learner_cfg = LearnerServiceConfig {
-        learner: preset.learner.clone(),
-        driver: mapless_learner_config::DriverConfig { send_priorities: true, ..preset.driver.clone() },
-        obs_dim: server.table.obs_dim,
-        act_dim: server.table.act_dim,
-        replay: format!("http://{replay_addr}"),
-        weights_listen: any_port,
-        checkpoint_dir: dir.join("checkpoints"),
-        tensorboard_dir: None,
-        policy_file: None,
-        resume: false,
-        threads: 1,
-        tls: None,
-        auth_token_file: None,
-        auth_token_files: Default::default(),
-        replay_security: Default::default(),
-        metrics_listen: Some(any_port),
-        metrics_token_file: None,
-    };
+    let learner_cfg = LearnerServiceConfig::loopback(
+        preset.learner.clone(),
+        mapless_learner_config::DriverConfig { send_priorities: true, ..preset.driver.clone() },
+        server.table.obs_dim,
+        server.table.act_dim,
+        format!("http://{replay_addr}"),
+        dir.join("checkpoints"),
+    );
     fs::write(dir.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
     let learner_cmd = vec![p(&sibling("mapless-learner")?), "--config".into(), p(&dir.join("learner.yaml")), "--run".into(), "soak".into()];
     let (mut learner, weights_addr, learner_metrics) = start_service("learner", learner_cmd, dir.join("logs/learner.log"), "weights on ", &line_rx, &line_tx)?;

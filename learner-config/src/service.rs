@@ -95,6 +95,35 @@ fn one() -> usize {
     1
 }
 
+impl LearnerServiceConfig {
+    /// A learner on this host only, as `mapless train` and `mapless bench soak` start one:
+    /// weights service and `/metrics` on loopback at any free port (each printed on stdout),
+    /// no TLS, no tokens, one thread, no resume, no TensorBoard or policy file. Callers set
+    /// what differs with struct update syntax.
+    pub fn loopback(learner: LearnerConfig, driver: DriverConfig, obs_dim: usize, act_dim: usize, replay: String, checkpoint_dir: PathBuf) -> LearnerServiceConfig {
+        let any_port = SocketAddr::from(([127, 0, 0, 1], 0));
+        LearnerServiceConfig {
+            learner,
+            driver,
+            obs_dim,
+            act_dim,
+            replay,
+            weights_listen: any_port,
+            checkpoint_dir,
+            tensorboard_dir: None,
+            policy_file: None,
+            resume: false,
+            threads: 1,
+            tls: None,
+            auth_token_file: None,
+            auth_token_files: Default::default(),
+            replay_security: Default::default(),
+            metrics_listen: Some(any_port),
+            metrics_token_file: None,
+        }
+    }
+}
+
 /// One line of the learner process's stdout, a JSON object tagged by `event` (what the
 /// supervisor of `mapless train` reads). Other lines (`weights on ADDR`, `metrics on URL`) are
 /// plain text.

@@ -93,23 +93,18 @@ impl Cluster {
         fs::write(run.join("replay.yaml"), serde_yaml::to_string(&server)?)?;
 
         let mut learner_cfg = LearnerServiceConfig {
-            learner: LearnerConfig { seed: cfg.seed, ..cfg.learner.clone() },
-            driver: cfg.driver.clone(),
-            obs_dim: cfg.env.obs_dim(),
-            act_dim: 2,
-            replay: format!("http://{replay_addr}"),
-            weights_listen: any_port,
-            checkpoint_dir: run.abs.join("checkpoints"),
             tensorboard_dir: Some(run.abs.join("tensorboard")),
             policy_file: Some(run.abs.join("policy.safetensors")),
             resume: true,
             threads: cfg.threads.learner,
-            tls: None,
-            auth_token_file: None,
-            auth_token_files: Default::default(),
-            replay_security: Default::default(),
-            metrics_listen: Some(any_port),
-            metrics_token_file: None,
+            ..LearnerServiceConfig::loopback(
+                LearnerConfig { seed: cfg.seed, ..cfg.learner.clone() },
+                cfg.driver.clone(),
+                cfg.env.obs_dim(),
+                2,
+                format!("http://{replay_addr}"),
+                run.abs.join("checkpoints"),
+            )
         };
         fs::write(run.join("learner.yaml"), serde_yaml::to_string(&learner_cfg)?)?;
         let learner_cmd = json_flag(vec![bins.learner.clone(), "--config".into(), p(&run.abs.join("learner.yaml")), "--run".into(), run.name.clone()]);

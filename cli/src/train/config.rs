@@ -270,6 +270,23 @@ impl TrainConfig {
         if self.stop.window == 0 {
             bail!("stop.window must be >= 1");
         }
+        // NaN compares false with everything: a NaN goal would never be reached and a NaN
+        // limit never hit, silently (found by the config_sources fuzz harness).
+        let s = &self.stop;
+        for (name, goal) in [("stop.average_return", s.average_return), ("stop.average_steps", s.average_steps), ("stop.eval_eqs", s.eval_eqs), ("stop.eval_ees", s.eval_ees)] {
+            if let Some(x) = goal
+                && !x.is_finite()
+            {
+                bail!("{name} must be a finite number, not {x}");
+            }
+        }
+        for (name, minutes) in [("stop.minutes", s.minutes), ("eval.every_minutes", self.eval.every_minutes)] {
+            if let Some(x) = minutes
+                && !(x.is_finite() && x > 0.0)
+            {
+                bail!("{name} must be a finite number of minutes > 0 (or null), not {x}");
+            }
+        }
         if self.stop.eval_episodes == 0 || !(self.stop.convergence_tolerance > 0.0) {
             bail!("stop.eval_episodes must be >= 1 and stop.convergence_tolerance > 0");
         }
@@ -743,6 +760,12 @@ mod tests {
         {
             let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
             assert!(e.contains(named), "--set {bad}: {e}");
+        }
+        // NaN goals and limits are refused by name, not kept to be never reached (the
+        // config_sources fuzz harness found `stop.minutes=.nan` accepted).
+        for bad in ["stop.minutes=.nan", "stop.minutes=0", "stop.eval_eqs=.nan", "stop.average_return=.inf", "eval.every_minutes=-1"] {
+            let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
+            assert!(e.contains(bad.split('=').next().unwrap()), "--set {bad}: {e}");
         }
     }
 
