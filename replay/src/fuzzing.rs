@@ -259,17 +259,24 @@ pub fn replay_ingest(data: &[u8]) {
     let table = Table::new(cfg.clone(), u64::from(config)).expect("valid config");
     let mut model = Model::new(cfg.capacity);
     for frame in frames(rest) {
-        match TransitionBatch::decode(Bytes::copy_from_slice(frame)) {
-            Err(e) => {
-                table.record_rejection("", &format!("malformed TransitionBatch: {e}"));
-                model.reject("");
-            }
-            Ok(batch) => {
-                let result = table.insert(&batch, Some(Instant::now()));
-                model.apply(&batch, result);
-            }
-        }
+        insert_frame(&table, &mut model, frame);
         model.check(&table);
+    }
+}
+
+/// One Insert message: decoded with prost as tonic decodes it (an undecodable one is counted
+/// against the stream as `grpc::InsertSession` counts it), then handed to [`Table::insert`];
+/// the model checks the answer.
+fn insert_frame(table: &Table, model: &mut Model, bytes: &[u8]) {
+    match TransitionBatch::decode(Bytes::copy_from_slice(bytes)) {
+        Err(e) => {
+            table.record_rejection("", &format!("malformed TransitionBatch: {e}"));
+            model.reject("");
+        }
+        Ok(batch) => {
+            let result = table.insert(&batch, Some(Instant::now()));
+            model.apply(&batch, result);
+        }
     }
 }
 
@@ -301,16 +308,7 @@ pub fn replay_requests(data: &[u8]) {
     for frame in frames(rest) {
         let Some((&kind, msg)) = frame.split_first() else { continue };
         match kind % 3 {
-            0 => match TransitionBatch::decode(Bytes::copy_from_slice(msg)) {
-                Err(e) => {
-                    table.record_rejection("", &format!("malformed TransitionBatch: {e}"));
-                    model.reject("");
-                }
-                Ok(batch) => {
-                    let result = table.insert(&batch, Some(Instant::now()));
-                    model.apply(&batch, result);
-                }
-            },
+            0 => insert_frame(&table, &mut model, msg),
             1 => {
                 let Ok(req) = SampleRequest::decode(Bytes::copy_from_slice(msg)) else { continue };
                 let Ok(rows) = req.validate(cfg.max_sample_rows) else { continue };
