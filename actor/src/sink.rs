@@ -23,7 +23,8 @@ pub enum Sink {
 impl Sink {
     /// Takes `batch` (its sequence must be above the previous one's) and sends it, waiting
     /// while the window is full or the replay is unreachable. Returns once the batch is held
-    /// for delivery; `Err` only when `stop` turned true first.
+    /// for delivery; `Err` only when `stop` turned true first, and the batch is then still held
+    /// for [`Sink::flush`] (both clients: the rows an actor hands over are the rows it owes).
     pub fn send(&mut self, batch: TransitionBatch, stop: &AtomicBool) -> Result<(), Stopped> {
         match self {
             Sink::Shm(s) => s.send(batch, stop),

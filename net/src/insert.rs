@@ -65,23 +65,53 @@ pub fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
 // ---------------------------------------------------------------------------------------------
 
 /// [`ShmWriter`] with reconnection and backpressure handled: the shared-memory counterpart of
-/// [`InsertClient`], with the same contract.
+/// [`InsertClient`], with the same contract: a batch handed to `send` is held for delivery
+/// even when `send` returns [`Stopped`], and `flush` delivers it.
 pub struct ShmInsertClient {
     cfg: ShmConfig,
     actor_id: String,
     writer: Option<ShmWriter>,
+    /// Batches handed to `send` and not yet taken by the writer (its window was full or the
+    /// connection broken when `stop` came), oldest first; `flush` hands them over.
+    held: VecDeque<TransitionBatch>,
     stats: InsertStats,
+}
+
+/// How long a blocking step of [`ShmInsertClient`] may go on: until the actor's stop flag
+/// (`send`) or until a deadline (`flush`, which runs after the flag is set).
+#[derive(Clone, Copy)]
+enum Until<'a> {
+    Stopped(&'a AtomicBool),
+    Deadline(Instant),
+}
+
+impl Until<'_> {
+    fn reached(self) -> bool {
+        match self {
+            Until::Stopped(stop) => stop.load(Ordering::Relaxed),
+            Until::Deadline(d) => Instant::now() >= d,
+        }
+    }
+
+    /// Sleeps `d`, or less when the limit comes first.
+    fn sleep(self, d: Duration) {
+        match self {
+            Until::Stopped(stop) => sleep_unless_stopped(d, stop),
+            Until::Deadline(end) => std::thread::sleep(d.min(end.saturating_duration_since(Instant::now()))),
+        }
+    }
 }
 
 impl ShmInsertClient {
     /// Connects to the ingest at `cfg`, retrying (with backoff) until it is there or `stop`.
     pub fn connect(cfg: ShmConfig, actor_id: &str, stop: &AtomicBool) -> Result<ShmInsertClient, Stopped> {
-        let mut s = ShmInsertClient { cfg, actor_id: actor_id.to_owned(), writer: None, stats: InsertStats::default() };
-        s.ensure_connected(stop)?;
+        let mut s = ShmInsertClient { cfg, actor_id: actor_id.to_owned(), writer: None, held: VecDeque::new(), stats: InsertStats::default() };
+        s.ensure_connected(Until::Stopped(stop)).map_err(|()| Stopped("connecting to the shared-memory ingest".into()))?;
         Ok(s)
     }
 
-    fn ensure_connected(&mut self, stop: &AtomicBool) -> Result<&mut ShmWriter, Stopped> {
+    /// `Err` when the limit came first.
+    fn ensure_connected(&mut self, until: Until) -> Result<&mut ShmWriter, ()> {
         let mut backoff = BACKOFF_START;
         while self.writer.is_none() {
             match ShmWriter::connect(&self.cfg, &self.actor_id) {
@@ -91,10 +121,10 @@ impl ShmInsertClient {
                 }
                 Err(e) => self.note_error(e.to_string()),
             }
-            if stop.load(Ordering::Relaxed) {
-                return Err(Stopped("connecting to the shared-memory ingest".into()));
+            if until.reached() {
+                return Err(());
             }
-            sleep_unless_stopped(backoff, stop);
+            until.sleep(backoff);
             backoff = (backoff * 2).min(BACKOFF_MAX);
         }
         // A writer whose connection broke resends everything unacknowledged on `reconnect`.
@@ -123,11 +153,11 @@ impl ShmInsertClient {
         }
     }
 
-    /// Reopens the connection (resending the window) with backoff until it works or `stop`.
-    fn reconnect(&mut self, stop: &AtomicBool) -> Result<(), Stopped> {
+    /// Reopens the connection (resending the window) with backoff until it works or the limit.
+    fn reconnect(&mut self, until: Until) -> Result<(), ()> {
         let mut backoff = BACKOFF_START;
         loop {
-            let w = self.ensure_connected(stop)?;
+            let w = self.ensure_connected(until)?;
             match w.reconnect() {
                 Ok(()) => {
                     self.stats.reconnects += 1;
@@ -135,10 +165,10 @@ impl ShmInsertClient {
                 }
                 Err(e) => self.note_error(e.to_string()),
             }
-            if stop.load(Ordering::Relaxed) {
-                return Err(Stopped("reconnecting to the shared-memory ingest".into()));
+            if until.reached() {
+                return Err(());
             }
-            sleep_unless_stopped(backoff, stop);
+            until.sleep(backoff);
             backoff = (backoff * 2).min(BACKOFF_MAX);
         }
     }
@@ -148,9 +178,15 @@ impl ShmInsertClient {
         &self.stats
     }
 
+    /// Batches handed to `send` that the writer has not taken yet (see [`ShmInsertClient::flush`]).
+    pub fn held(&self) -> usize {
+        self.held.len()
+    }
+
     /// Takes `batch` (its sequence must be above the previous one's) and sends it, waiting
-    /// while the window is full or the replay is unreachable. Returns once the batch is held
-    /// for delivery; `Err` only when `stop` turned true first.
+    /// while the window is full or the replay is unreachable. Returns once the batch is taken
+    /// by the writer; `Err` when `stop` turned true first, with the batch still held here for
+    /// [`ShmInsertClient::flush`].
     pub fn send(&mut self, batch: TransitionBatch, stop: &AtomicBool) -> Result<(), Stopped> {
         self.stats.batches += 1;
         self.stats.rows += u64::from(batch.num_rows);
@@ -163,23 +199,37 @@ impl ShmInsertClient {
             tracing::error!(sequence = batch.sequence, bytes = len, limit = self.cfg.max_payload_bytes, "batch larger than the shared-memory limit; dropped (send smaller batches)");
             return Ok(());
         }
+        self.held.push_back(batch);
+        self.hand_over(Until::Stopped(stop)).map_err(|()| Stopped("waiting for the replay to take a batch".into()))
+    }
+
+    /// Hands the held batches to the writer, oldest first; `Err` when the limit came first
+    /// (what is left stays held).
+    fn hand_over(&mut self, until: Until) -> Result<(), ()> {
         let mut backoff = BACKOFF_START;
-        loop {
-            let w = self.ensure_connected(stop)?;
+        while let Some(batch) = self.held.pop_front() {
+            let w = match self.ensure_connected(until) {
+                Ok(w) => w,
+                Err(()) => {
+                    self.held.push_front(batch);
+                    return Err(());
+                }
+            };
             let sent = w.send(&batch);
             let acks = w.poll_acks();
             match acks {
                 Ok(a) => self.count(a),
                 Err(e) if sent.is_ok() => {
-                    // Taken; the connection broke afterwards: the window is resent on a new one.
+                    // Taken; the connection broke afterwards: the window is resent on a new
+                    // one (now, or by the next call once the limit allows).
                     self.note_error(e.to_string());
-                    self.reconnect(stop)?;
-                    return Ok(());
+                    let _ = self.reconnect(until);
+                    continue;
                 }
                 Err(_) => {}
             }
             match sent {
-                Ok(()) => return Ok(()),
+                Ok(()) => continue,
                 Err(ShmError::DeadlineExceeded { .. }) => {
                     // Backpressure: the replay holds inserts back (rate limiter). Try again.
                 }
@@ -187,22 +237,27 @@ impl ShmInsertClient {
                     // Not taken: the connection is closed or another writer still holds the
                     // actor id (a predecessor's connection not yet reaped). Reconnect later.
                     self.note_error(e.to_string());
-                    sleep_unless_stopped(backoff, stop);
+                    until.sleep(backoff);
                     backoff = (backoff * 2).min(BACKOFF_MAX);
-                    if !stop.load(Ordering::Relaxed) {
-                        self.reconnect(stop)?;
+                    if !until.reached() {
+                        let _ = self.reconnect(until);
                     }
                 }
             }
-            if stop.load(Ordering::Relaxed) {
-                return Err(Stopped("waiting for the replay to take a batch".into()));
+            self.held.push_front(batch);
+            if until.reached() {
+                return Err(());
             }
         }
+        Ok(())
     }
 
-    /// Waits until every batch is acknowledged, at most until `deadline`; true when none is
-    /// left unacknowledged.
+    /// Hands over the held batches and waits until every batch is acknowledged, at most
+    /// until `deadline`; true when none is left held or unacknowledged.
     pub fn flush(&mut self, deadline: Instant) -> bool {
+        if self.hand_over(Until::Deadline(deadline)).is_err() {
+            return false;
+        }
         loop {
             let Some(w) = self.writer.as_mut() else { return true };
             match w.wait_acks(deadline) {

@@ -16,11 +16,12 @@ mod shm_common;
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::mpsc::{Receiver, channel};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use mapless_net::insert::ShmInsertClient;
 use mapless_net::shm::{Ack, ShmConfig, ShmError, ShmWriter};
 use mapless_proto::FloatEncoding;
 use mapless_replay::shm::ShmIngest;
@@ -478,5 +479,55 @@ fn insert_blocked_by_the_rate_limiter_delays_the_ack_without_dropping_it() {
     t.sample(100, None, Some(in_secs(5))).unwrap();
     assert_eq!(stored(&w.wait_acks(in_secs(20)).unwrap()), [(3, false)]);
     assert_eq!(t.actors()["rl"].batches, 3);
+    ingest.stop();
+}
+
+/// A batch handed to the actor's client while the writer's window is full (the replay's rate
+/// limiter holds inserts back) and the actor is told to stop is not lost: `send` returns
+/// `Stopped` with the batch still held, and `flush` delivers it once inserts flow again, so
+/// the rows the actor reports handing over are exactly the rows stored under its id. (Before,
+/// the shared-memory client counted that batch and dropped it: a clean-clone compose drill
+/// once found an `actor-shm` replica one batch short after a stop.)
+#[test]
+fn a_batch_handed_over_as_the_actor_stops_is_held_and_flushed_not_lost() {
+    let _g = serial();
+    // samples_per_insert 1, error_buffer 100: the third batch of 100 rows waits for sampling.
+    let tc = TableConfig {
+        capacity: 10_000,
+        obs_dim: OBS,
+        rate_limiter: RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 },
+        max_batch_rows: 100,
+        max_sample_rows: 100,
+        ..TableConfig::default()
+    };
+    let t = Arc::new(Table::new(tc, 1).unwrap());
+    let c = ShmConfig { max_in_flight: 1, send_timeout_ms: 200, ..cfg("stopheld") };
+    let ingest = ShmIngest::spawn(Arc::clone(&t), c.clone()).unwrap();
+    let (running, stopping) = (AtomicBool::new(false), AtomicBool::new(true));
+    let mut client = ShmInsertClient::connect(c, "held", &running).unwrap();
+    for seq in 1..=3 {
+        client.send(synthetic_batch("held", seq, 100, OBS), &running).unwrap();
+    }
+    // Batch 3 fills the one-batch window, stalled at the limiter; batch 4 cannot be taken.
+    let e = client.send(synthetic_batch("held", 4, 100, OBS), &stopping).unwrap_err();
+    assert!(e.to_string().contains("take a batch"), "{e}");
+    assert_eq!(client.held(), 1);
+    assert_eq!(t.actors()["held"].batches, 2);
+    // Sampling lets inserts through again; the flush hands batch 4 over and waits for both.
+    let sampler = {
+        let t = Arc::clone(&t);
+        std::thread::spawn(move || {
+            for _ in 0..3 {
+                t.sample(100, None, Some(in_secs(10))).unwrap();
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        })
+    };
+    assert!(client.flush(in_secs(20)), "{:?}", client.stats());
+    sampler.join().unwrap();
+    assert_eq!(client.held(), 0);
+    let s = client.stats();
+    assert_eq!((s.batches, s.rows, s.acked, s.duplicates), (4, 400, 4, 0), "{s:?}");
+    assert_eq!((t.actors()["held"].batches, t.actors()["held"].rows), (4, 400));
     ingest.stop();
 }
