@@ -197,9 +197,9 @@ impl ShmInsertClient {
         if len > self.cfg.max_payload_bytes {
             self.stats.rejected += 1;
             tracing::error!(sequence = batch.sequence, bytes = len, limit = self.cfg.max_payload_bytes, "batch larger than the shared-memory limit; dropped (send smaller batches)");
-            return Ok(());
+        } else {
+            self.held.push_back(batch);
         }
-        self.held.push_back(batch);
         self.hand_over(Until::Stopped(stop)).map_err(|()| Stopped("waiting for the replay to take a batch".into()))
     }
 
@@ -207,6 +207,7 @@ impl ShmInsertClient {
     /// (what is left stays held).
     fn hand_over(&mut self, until: Until) -> Result<(), ()> {
         let mut backoff = BACKOFF_START;
+        let send_timeout = Duration::from_millis(self.cfg.send_timeout_ms);
         while let Some(batch) = self.held.pop_front() {
             let w = match self.ensure_connected(until) {
                 Ok(w) => w,
@@ -215,21 +216,29 @@ impl ShmInsertClient {
                     return Err(());
                 }
             };
-            let sent = w.send(&batch);
+            let sent = match until {
+                // A flush waits for a free slot in the window no longer than its deadline.
+                Until::Deadline(d) => w.send_by(&batch, d.min(Instant::now() + send_timeout)),
+                Until::Stopped(_) => w.send(&batch),
+            };
             let acks = w.poll_acks();
             match acks {
                 Ok(a) => self.count(a),
                 Err(e) if sent.is_ok() => {
                     // Taken; the connection broke afterwards: the window is resent on a new
-                    // one (now, or by the next call once the limit allows).
+                    // one (now, or by a later call when the limit comes first).
                     self.note_error(e.to_string());
-                    let _ = self.reconnect(until);
+                    self.reconnect(until)?;
+                    backoff = BACKOFF_START;
                     continue;
                 }
                 Err(_) => {}
             }
             match sent {
-                Ok(()) => continue,
+                Ok(()) => {
+                    backoff = BACKOFF_START;
+                    continue;
+                }
                 Err(ShmError::DeadlineExceeded { .. }) => {
                     // Backpressure: the replay holds inserts back (rate limiter). Try again.
                 }

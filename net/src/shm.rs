@@ -458,6 +458,12 @@ impl ShmWriter {
     /// full window (`DeadlineExceeded`), or a broken connection (`Closed`: reconnect, then
     /// send it again).
     pub fn send(&mut self, batch: &TransitionBatch) -> Result<(), ShmError> {
+        self.send_by(batch, Instant::now() + Duration::from_millis(self.cfg.send_timeout_ms))
+    }
+
+    /// [`ShmWriter::send`], waiting for a free slot in the window until `deadline` instead of
+    /// `send_timeout_ms` (a caller with a deadline of its own, such as a flush at shutdown).
+    pub fn send_by(&mut self, batch: &TransitionBatch, deadline: Instant) -> Result<(), ShmError> {
         if batch.actor_id != self.actor_id {
             return Err(ShmError::BadRequest(format!("batch is for actor `{}`, this writer writes `{}`", batch.actor_id, self.actor_id)));
         }
@@ -472,13 +478,17 @@ impl ShmWriter {
         }
         let mut bytes = Vec::with_capacity(len);
         batch.encode_f32le(&mut bytes);
-        self.send_encoded(batch.sequence, bytes)
+        self.send_encoded_by(batch.sequence, bytes, deadline)
     }
 
     /// Sends bytes that claim to be the prost encoding of this actor's batch `sequence`,
     /// unchecked (test and tooling hook: the service must survive garbage).
     #[doc(hidden)]
     pub fn send_encoded(&mut self, sequence: u64, bytes: Vec<u8>) -> Result<(), ShmError> {
+        self.send_encoded_by(sequence, bytes, Instant::now() + Duration::from_millis(self.cfg.send_timeout_ms))
+    }
+
+    fn send_encoded_by(&mut self, sequence: u64, bytes: Vec<u8>, deadline: Instant) -> Result<(), ShmError> {
         if sequence <= self.last_sequence {
             return Err(ShmError::BadRequest(format!("sequence {sequence} is not above the last sent {}; unacknowledged batches are resent by reconnect()", self.last_sequence)));
         }
@@ -489,7 +499,6 @@ impl ShmWriter {
         let window = self.conn.as_ref().map_or(1, |c| c.window);
         if self.window.len() >= window {
             let start = Instant::now();
-            let deadline = start + Duration::from_millis(self.cfg.send_timeout_ms);
             let mut backoff = Backoff::new(self.cfg.idle_sleep_us);
             loop {
                 self.collect();
