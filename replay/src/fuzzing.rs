@@ -19,6 +19,9 @@
 //!   wal_recovery   [base byte] op*             a valid directory written by DurableTable,
 //!                  then flipped, truncated, swapped, deleted, copied bytes and files
 //!                  ─► persist::recovery::recover, twice
+//!   actor_slots    [max byte] frame*           the first frame: an actor-slots.json; then
+//!                  prost RegisterActorRequest ─► protocol version ─► ActorRegistry::register
+//!                  (the RegisterActor path), and the file reopened
 //! ```
 //!
 //! After every frame the ingest harnesses compare the table with a model of what it must
@@ -30,21 +33,22 @@
 //! minibatches validate, and that a second recovery of what the first left finds a clean log
 //! and the same rows.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Instant;
 
 use mapless_net::shm::BatchHeader;
-use mapless_proto::v1::{PriorityUpdate, SampleRequest, SampledBatch, TransitionBatch};
-use mapless_proto::{FloatColumn, FloatEncoding, MAX_ACTOR_ID_BYTES, Transition, TransitionBatchBuilder};
+use mapless_proto::v1::{PriorityUpdate, RegisterActorRequest, SampleRequest, SampledBatch, TransitionBatch};
+use mapless_proto::{FloatColumn, FloatEncoding, MAX_ACTOR_ID_BYTES, Transition, TransitionBatchBuilder, check_actor_name, check_protocol_version};
 use prost::Message;
 use prost::bytes::Bytes;
 
 use crate::config::{FsyncPolicy, PersistenceConfig, RateLimiterConfig, SamplerConfig, TableConfig};
 use crate::error::ReplayError;
 use crate::persist::DurableTable;
+use crate::registry::{ActorRegistry, RegistryCounts, SLOTS_FILE};
 use crate::snapshot::SnapshotStore;
 use crate::table::{Journal, StoredRow, Table};
 
@@ -193,6 +197,11 @@ impl Model {
         self.last_sequence.insert(b.actor_id.clone(), b.sequence);
     }
 
+    /// The key of the oldest row stored.
+    fn first_key(&self) -> u64 {
+        self.next_key - self.rows.len() as u64
+    }
+
     fn reject(&mut self, actor_id: &str) {
         let id = if actor_id.is_empty() || actor_id.len() > MAX_ACTOR_ID_BYTES { "<invalid actor id>" } else { actor_id };
         *self.rejected.entry(id.to_string()).or_default() += 1;
@@ -215,7 +224,7 @@ impl Model {
         for id in self.last_sequence.keys().chain(self.rejected.keys()) {
             assert!(actors.contains_key(id), "actor `{id}` is missing from the table's statistics");
         }
-        let first = self.next_key - self.rows.len() as u64;
+        let first = self.first_key();
         check_samples(table, |k| k.checked_sub(first).and_then(|i| self.rows.get(i as usize)).cloned());
     }
 
@@ -313,7 +322,7 @@ pub fn replay_requests(data: &[u8]) {
                 let Ok(req) = SampleRequest::decode(Bytes::copy_from_slice(msg)) else { continue };
                 let Ok(rows) = req.validate(cfg.max_sample_rows) else { continue };
                 let floats = if req.float_columns_as_bytes { FloatEncoding::F32Le } else { FloatEncoding::Packed };
-                let first = model.next_key - model.rows.len() as u64;
+                let first = model.first_key();
                 match table.sample_as(rows, Some(f64::from(req.importance_beta)), Some(Instant::now()), floats) {
                     Ok(batch) => {
                         if let Err(e) = batch.validate(OBS_DIM, ACT_DIM, cfg.max_sample_rows) {
@@ -340,7 +349,7 @@ pub fn replay_requests(data: &[u8]) {
                 if cfg.sampler == SamplerConfig::Uniform || update.validate(crate::grpc::MAX_PRIORITY_KEYS).is_err() {
                     continue;
                 }
-                let first = model.next_key - model.rows.len() as u64;
+                let first = model.first_key();
                 let held = update.keys.iter().filter(|&&k| k >= first && k < model.next_key).count();
                 match table.update_priorities(&update.keys, &update.priorities) {
                     Ok((updated, unknown)) => {
@@ -822,5 +831,98 @@ pub fn wal_recovery(data: &[u8]) {
         Err(ReplayError::Storage { .. } | ReplayError::InvalidConfig(_)) => assert!(changed, "an undamaged directory failed to recover: {:?}", first.as_ref().err()),
         Err(e) => panic!("recovery failed with an unexpected error: {e}"),
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// What a registration must answer, from the slots given out so far.
+#[derive(Debug)]
+enum Expected {
+    BadName,
+    Known(u32),
+    New(u32),
+    Exhausted,
+}
+
+fn expected_registration(model: &BTreeMap<String, u32>, max_slots: u32, name: &str) -> Expected {
+    if check_actor_name(name).is_err() {
+        return Expected::BadName;
+    }
+    if let Some(&slot) = model.get(name) {
+        return Expected::Known(slot);
+    }
+    let held: HashSet<u32> = model.values().copied().collect();
+    let lowest = (0..=u32::MAX).find(|s| !held.contains(s)).expect("fewer slots held than u32 values");
+    if lowest >= max_slots { Expected::Exhausted } else { Expected::New(lowest) }
+}
+
+/// `actor_slots`: `[max byte] frame*` (frames as [`replay_ingest`]'s). The first frame is the
+/// bytes of a replay's `actor-slots.json` (empty: no file), each further frame a prost
+/// `RegisterActorRequest`, handled as `ReplayService::register_actor` handles it (protocol
+/// version, then [`ActorRegistry::register`]); `max_actor_slots` is 1 + max byte % 8.
+///
+/// Checked: a file that does not load is an error naming it and is left unchanged; a file that
+/// loads holds valid names on distinct slots; every registration answers what a model of the
+/// table says (a bad name refused, a known name its slot, a new one the lowest free slot, none
+/// left past `max_actor_slots`), the table and its counters match the model after each, and
+/// the file the registry leaves loads back to the same table.
+pub fn actor_slots(data: &[u8]) {
+    let Some((&max_byte, rest)) = data.split_first() else { return };
+    let max_slots = u32::from(max_byte % 8) + 1;
+    let mut input = frames(rest);
+    let file = input.next().unwrap_or_default();
+    let dir = scratch_dir();
+    let path = dir.join(SLOTS_FILE);
+    if !file.is_empty() {
+        std::fs::write(&path, file).expect("write a scratch file");
+    }
+    let registry = match ActorRegistry::open(Some(&dir), max_slots) {
+        Ok(r) => r,
+        Err(e) => {
+            let message = e.to_string();
+            assert!(matches!(e, ReplayError::Storage { .. }) && message.contains(SLOTS_FILE) && message.contains("not a valid actor-slot file"), "unclear refusal: {message}");
+            assert_eq!(std::fs::read(&path).ok().as_deref(), Some(file), "a refused slot file was changed");
+            let _ = std::fs::remove_dir_all(&dir);
+            return;
+        }
+    };
+    let mut model = registry.slots();
+    let mut held = HashSet::new();
+    for (name, &slot) in &model {
+        assert!(check_actor_name(name).is_ok(), "loaded a bad name {name:?}");
+        assert!(held.insert(slot), "loaded slot {slot} twice");
+    }
+    let mut counts = RegistryCounts { registered: model.len() as u64, ..RegistryCounts::default() };
+    for frame in input {
+        // An undecodable request never reaches the service (tonic answers it).
+        let Ok(request) = RegisterActorRequest::decode(frame) else { continue };
+        if check_protocol_version(request.protocol_version).is_err() {
+            registry.record_refused();
+            counts.refused += 1;
+            continue;
+        }
+        let expected = expected_registration(&model, max_slots, &request.name);
+        match (registry.register(&request.name), &expected) {
+            (Err(ReplayError::BadRequest(_)), Expected::BadName) | (Err(ReplayError::SlotsExhausted { .. }), Expected::Exhausted) => counts.refused += 1,
+            (Ok(r), &Expected::Known(slot)) => {
+                assert!(r.known && r.slot == slot && r.registered as usize == model.len(), "{:?} answered {r:?}, expected {expected:?}", request.name);
+                counts.known += 1;
+            }
+            (Ok(r), &Expected::New(slot)) => {
+                model.insert(request.name.clone(), slot);
+                assert!(!r.known && r.slot == slot && r.registered as usize == model.len(), "{:?} answered {r:?}, expected {expected:?}", request.name);
+                counts.new += 1;
+            }
+            // The scratch file system is full: nothing is given out (the table checks below).
+            (Err(ReplayError::Storage { .. }), Expected::New(_)) => counts.refused += 1,
+            (got, _) => panic!("{:?} answered {got:?}, expected {expected:?}", request.name),
+        }
+        counts.registered = model.len() as u64;
+        assert_eq!(registry.slots(), model, "after registering {:?}", request.name);
+        assert_eq!(registry.counts(), counts);
+    }
+    drop(registry);
+    let again = ActorRegistry::open(Some(&dir), max_slots).expect("the registry's own file loads");
+    assert_eq!(again.slots(), model, "the file holds what was given out");
+    drop(again);
     let _ = std::fs::remove_dir_all(&dir);
 }

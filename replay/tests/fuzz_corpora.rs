@@ -6,7 +6,7 @@
 //! `MAPLESS_WRITE_FUZZ_SEEDS=1 cargo test -p mapless-replay --test fuzz_corpora -- --ignored`
 //! (docs/reliability.md, "Fuzzing").
 
-use mapless_proto::v1::{PriorityUpdate, ProtocolVersion, SampleRequest, TransitionBatch};
+use mapless_proto::v1::{PriorityUpdate, ProtocolVersion, RegisterActorRequest, SampleRequest, TransitionBatch};
 use mapless_replay::fuzzing::{self, frame_all, op, seed_batches, shm_frame};
 use prost::Message;
 
@@ -35,12 +35,18 @@ fn wal_recovery_corpus_and_regressions() {
 }
 
 #[test]
+fn actor_slots_corpus_and_regressions() {
+    assert!(replay_inputs("actor_slots", fuzzing::actor_slots) > 0, "no committed inputs for actor_slots");
+}
+
+#[test]
 fn the_seeds_pass_their_harnesses() {
     for (target, _, data) in seeds() {
         match target {
             "replay_ingest" => fuzzing::replay_ingest(&data),
             "shm_wire" => fuzzing::shm_wire(&data),
             "replay_requests" => fuzzing::replay_requests(&data),
+            "actor_slots" => fuzzing::actor_slots(&data),
             _ => fuzzing::wal_recovery(&data),
         }
     }
@@ -175,6 +181,28 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
         out.push(("wal_recovery", format!("base-{kind}-snapshot-forged"), vec![kind, op::OVERWRITE, snap(kind), 20, 0, 3, b'9', b'9', b'9', op::FIX_CHECKSUMS, snap(kind)]));
         out.push(("wal_recovery", format!("base-{kind}-snapshot-deleted"), vec![kind, op::DELETE, snap(kind)]));
     }
+    // actor_slots: max byte (max_actor_slots = 1 + byte % 8), the slot file, registrations.
+    let register = |name: &str| RegisterActorRequest { protocol_version: v1, name: name.to_owned() }.encode_to_vec();
+    let file = |text: &str| text.as_bytes().to_vec();
+    let names = |list: &[&str]| list.iter().map(|n| register(n)).collect::<Vec<_>>();
+    let mut fresh = vec![Vec::new()]; // no file yet
+    fresh.extend(names(&["mapless-actor-1", "mapless-actor-2", "mapless-actor-1", "", "tab\there", &"x".repeat(129), "ünïcödé", "mapless-actor-3"]));
+    fresh.push(RegisterActorRequest { protocol_version: 0, name: "old-client".into() }.encode_to_vec());
+    fresh.push(b"not a protobuf message".to_vec());
+    out.push(("actor_slots", "fresh-then-full".into(), frame_all(2, &fresh)));
+    let mut known = vec![file(r#"{"version": 1, "slots": {"a": 0, "c": 2, "far": 40}}"#)];
+    known.extend(names(&["c", "b", "d", "a", "e"]));
+    out.push(("actor_slots", "file-with-a-gap".into(), frame_all(5, &known)));
+    for (name, text) in [
+        ("file-torn", r#"{"version": 1, "slots": {"a": 0"#),
+        ("file-two-names-one-slot", r#"{"version": 1, "slots": {"a": 0, "b": 0}}"#),
+        ("file-other-version", r#"{"version": 2, "slots": {}}"#),
+        ("file-bad-name", r#"{"version": 1, "slots": {"": 3}}"#),
+        ("file-negative-slot", r#"{"version": 1, "slots": {"a": -1}}"#),
+        ("file-unknown-field", r#"{"version": 1, "slots": {}, "extra": true}"#),
+    ] {
+        out.push(("actor_slots", name.into(), frame_all(7, &[file(text), register("a")])));
+    }
     out.push(("wal_recovery", "base-1-record-forged".into(), vec![1, op::OVERWRITE, seg(1, 0), 60, 0, 8, 0, 0, 0, 0, 0, 0, 0xf8, 0x7f, op::FIX_CHECKSUMS, seg(1, 0)]));
     out
 }
@@ -183,7 +211,7 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
 #[test]
 #[ignore]
 fn write_seed_corpora() {
-    for target in ["replay_ingest", "shm_wire", "replay_requests", "wal_recovery"] {
+    for target in ["replay_ingest", "shm_wire", "replay_requests", "wal_recovery", "actor_slots"] {
         fuzz_corpus::write_seeds(target, seeds().into_iter().filter(|(t, _, _)| *t == target).map(|(_, name, data)| (name, data)));
     }
 }
