@@ -87,6 +87,20 @@ fn cfg(tag: &str) -> ShmConfig {
     ShmConfig { prefix: format!("mapless-test/{tag}"), domain, dead_node_scan_ms: 100, ..ShmConfig::default() }
 }
 
+/// samples_per_insert 1, error_buffer 100: inserts wait once 110 rows are unsampled, so the
+/// third batch of 100 rows waits for sampling.
+fn rate_limited_table() -> Arc<Table> {
+    let c = TableConfig {
+        capacity: 10_000,
+        obs_dim: OBS,
+        rate_limiter: RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 },
+        max_batch_rows: 100,
+        max_sample_rows: 100,
+        ..TableConfig::default()
+    };
+    Arc::new(Table::new(c, 1).unwrap())
+}
+
 fn table() -> Arc<Table> {
     let c =
         TableConfig { capacity: 100_000, obs_dim: OBS, rate_limiter: RateLimiterConfig { min_size_to_sample: 1, samples_per_insert: None, ..RateLimiterConfig::default() }, ..TableConfig::default() };
@@ -454,16 +468,7 @@ fn second_writer_for_an_actor_is_refused_until_the_first_disconnects() {
 #[test]
 fn insert_blocked_by_the_rate_limiter_delays_the_ack_without_dropping_it() {
     let _g = serial();
-    // samples_per_insert 1, error_buffer 100: inserts wait once 110 rows are unsampled.
-    let tc = TableConfig {
-        capacity: 10_000,
-        obs_dim: OBS,
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 },
-        max_batch_rows: 100,
-        max_sample_rows: 100,
-        ..TableConfig::default()
-    };
-    let t = Arc::new(Table::new(tc, 1).unwrap());
+    let t = rate_limited_table();
     let c = cfg("ratelimit");
     let ingest = ShmIngest::spawn(Arc::clone(&t), c.clone()).unwrap();
     let mut w = ShmWriter::connect(&c, "rl").unwrap();
@@ -491,16 +496,7 @@ fn insert_blocked_by_the_rate_limiter_delays_the_ack_without_dropping_it() {
 #[test]
 fn a_batch_handed_over_as_the_actor_stops_is_held_and_flushed_not_lost() {
     let _g = serial();
-    // samples_per_insert 1, error_buffer 100: the third batch of 100 rows waits for sampling.
-    let tc = TableConfig {
-        capacity: 10_000,
-        obs_dim: OBS,
-        rate_limiter: RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 },
-        max_batch_rows: 100,
-        max_sample_rows: 100,
-        ..TableConfig::default()
-    };
-    let t = Arc::new(Table::new(tc, 1).unwrap());
+    let t = rate_limited_table();
     let c = ShmConfig { max_in_flight: 1, send_timeout_ms: 200, ..cfg("stopheld") };
     let ingest = ShmIngest::spawn(Arc::clone(&t), c.clone()).unwrap();
     let (running, stopping) = (AtomicBool::new(false), AtomicBool::new(true));
