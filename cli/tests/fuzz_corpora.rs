@@ -4,8 +4,10 @@
 //! without `--set` overrides, and a run's `config.yaml` as `mapless train` writes it:
 //! `MAPLESS_WRITE_FUZZ_SEEDS=1 cargo test -p mapless-cli --test fuzz_corpora -- --ignored`.
 
-use mapless_cli::fuzzing::{check, config_sources};
+use mapless_cli::fuzzing::{check, config_sources, episode_stats, episode_stats_input};
 use mapless_cli::train::config::{PRESETS, preset_config};
+use mapless_proto::v1::{EpisodeStats, ProtocolVersion};
+use prost::Message;
 
 #[path = "../../tests/common/fuzz_corpus.rs"]
 mod fuzz_corpus;
@@ -69,9 +71,87 @@ fn a_configuration_that_no_longer_resolves_fails_the_check() {
     check(&cfg);
 }
 
-/// Writes the seeds into `fuzz/corpus/config_sources/seed-<name>` (run by hand).
+/// Writes the seeds into `fuzz/corpus/config_sources/seed-<name>` and
+/// `fuzz/corpus/episode_stats/seed-<name>` (run by hand).
 #[test]
 #[ignore]
 fn write_seed_corpus() {
     fuzz_corpus::write_seeds("config_sources", seeds());
+    fuzz_corpus::write_seeds("episode_stats", stats_seeds());
+}
+
+// ---------------------------------------------------------------------------------------------
+// episode_stats
+// ---------------------------------------------------------------------------------------------
+
+/// A valid training record of `actor_id`, episode `id`.
+fn record(actor_id: &str, id: u64, ret: f64, steps: u32) -> EpisodeStats {
+    EpisodeStats {
+        protocol_version: ProtocolVersion::V1 as i32,
+        actor_id: actor_id.into(),
+        episode_id: id,
+        policy_version: id * 3,
+        episode_return: ret,
+        steps,
+        terminal: steps < 1000,
+        truncated: steps >= 1000,
+        eqs: 12.0 + id as f64,
+        ees: 1.25,
+        distance_m: 0.05 * f64::from(steps),
+        ..EpisodeStats::default()
+    }
+}
+
+fn encoded(records: &[EpisodeStats]) -> Vec<Vec<u8>> {
+    records.iter().map(Message::encode_to_vec).collect()
+}
+
+fn stats_seeds() -> Vec<(String, Vec<u8>)> {
+    let three = encoded(&[record("actor-0-1-2", 1, 433.5, 1000), record("actor-1-1-2", 1, -12.25, 37), record("actor-0-1-2", 2, 301.0, 900)]);
+    let odd =
+        encoded(&[record("actor,\"0\"", 1, 1.0, 10), EpisodeStats { evaluation: true, ..record("eval", 2, 400.0, 1000) }, record("line\nbreak\rand é ☃", 3, 2.0, 20), record(" spaced ", 4, 3.0, 30)]);
+    let extremes = encoded(&[EpisodeStats {
+        policy_version: u64::MAX,
+        episode_id: u64::MAX,
+        episode_return: -f64::MAX,
+        steps: u32::MAX,
+        eqs: f64::MAX,
+        ees: f64::MIN_POSITIVE / 4.0,
+        distance_m: -0.0,
+        shaded_time_s: 1e-300,
+        ..record("x", 1, 0.0, 1)
+    }]);
+    let mut nan_then_more = encoded(&[record("a", 1, 1.0, 5), record("a", 2, 2.0, 6)]);
+    nan_then_more.extend(encoded(&[EpisodeStats { episode_return: f64::NAN, ..record("a", 3, 0.0, 7) }, record("a", 4, 4.0, 8)]));
+    let mut garbage = encoded(&[record("a", 1, 1.0, 5)]);
+    garbage.push(vec![0xff, 0xff, 0xff, 0x0f]);
+    garbage.extend(encoded(&[record("a", 2, 2.0, 6)]));
+    let old_protocol = encoded(&[EpisodeStats { protocol_version: 0, ..record("a", 1, 1.0, 5) }]);
+    let both_flags = encoded(&[EpisodeStats { terminal: true, truncated: true, ..record("a", 1, 1.0, 5) }]);
+    vec![
+        ("three-whole".into(), episode_stats_input(u16::MAX, &three)),
+        ("three-torn-in-a-row".into(), episode_stats_input(200, &three)),
+        ("three-torn-in-the-header".into(), episode_stats_input(10, &three)),
+        ("odd-actor-ids-and-an-evaluation".into(), episode_stats_input(u16::MAX, &odd)),
+        ("odd-actor-ids-torn".into(), episode_stats_input(170, &odd)),
+        ("extremes".into(), episode_stats_input(u16::MAX, &extremes)),
+        ("nan-return-ends-the-stream".into(), episode_stats_input(u16::MAX, &nan_then_more)),
+        ("undecodable-frame-ends-the-stream".into(), episode_stats_input(u16::MAX, &garbage)),
+        ("old-protocol".into(), episode_stats_input(u16::MAX, &old_protocol)),
+        ("terminal-and-truncated".into(), episode_stats_input(0, &both_flags)),
+        ("empty".into(), episode_stats_input(u16::MAX, &[])),
+    ]
+}
+
+#[test]
+fn episode_stats_corpus_and_regressions() {
+    assert!(fuzz_corpus::replay_inputs("episode_stats", episode_stats) > 0, "no committed inputs for episode_stats");
+}
+
+#[test]
+fn the_episode_stats_seeds_pass_the_harness() {
+    for (name, data) in stats_seeds() {
+        eprintln!("{name}");
+        episode_stats(&data);
+    }
 }
