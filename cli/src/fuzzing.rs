@@ -116,8 +116,9 @@ pub fn episode_stats(data: &[u8]) {
         let (a, b) = (resumed.averages(w), averages(&kept, w));
         assert!(same(a.0, b.0) && same(a.1, b.1), "order-{w} averages after the resume: {a:?}, of the rows kept: {b:?}");
     }
-    let next = EpisodeStats { actor_id: "actor-after-resume".into(), episode_id: 1, terminal: true, steps: 7, ..EpisodeStats::default() };
-    resumed.record(EpisodeStats { protocol_version: mapless_proto::v1::ProtocolVersion::V1 as i32, ..next }, 1.0).expect("append after the resume");
+    let next =
+        EpisodeStats { protocol_version: mapless_proto::v1::ProtocolVersion::V1 as i32, actor_id: "actor-after-resume".into(), episode_id: 1, terminal: true, steps: 7, ..EpisodeStats::default() };
+    resumed.record(next, 1.0).expect("append after the resume");
     let expected_episode = kept.last().map_or(1, |r| r.episode + 1);
     assert_eq!(resumed.rows.last().map(|r| r.episode), Some(expected_episode), "the appended row's number");
     let after = resumed.rows.clone();
