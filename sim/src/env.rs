@@ -63,6 +63,17 @@ impl World {
         self.map.is_free(x, y) && self.collide.distance_to_nearest(x, y) >= clearance_m + circumradius
     }
 
+    /// Does the car at `pose` face a surface within `within_m`? Rays from its centre across its
+    /// front — the heading and ± 15°, 30°, 45° — and the nearest hit counts (a hard start,
+    /// `episode.hard_start_share`).
+    pub fn faces_surface_within(&self, pose: Pose, within_m: f64) -> bool {
+        let reach = within_m as f32;
+        (-3..=3).any(|k| {
+            let a = pose.heading_rad + f64::from(k) * 15f64.to_radians();
+            self.collide.cast_ray(pose.x_m as f32, pose.y_m as f32, a.cos() as f32, a.sin() as f32, reach) < reach
+        })
+    }
+
     /// Can the car, started at `pose`, drive on for ever? The car has no reverse and turns no
     /// tighter than L / tan δ_max (0.76 m at the rear axle), so a pose 0.83 m from a wall and
     /// facing it collides whatever the policy does. The witness used here: after driving
@@ -242,17 +253,19 @@ impl Env {
         let w = Arc::clone(&self.world);
         let b = w.map.bounds;
         let ep = &w.cfg.episode;
+        // Drawn only when asked for, so that share 0 leaves every seed's starts unchanged.
+        let facing = (ep.hard_start_share > 0.0 && self.rng.random::<f64>() < ep.hard_start_share).then_some(ep.hard_start_within_m);
         for _ in 0..ep.start_attempts {
             let x = self.rng.random_range(b.min_x..b.max_x);
             let y = self.rng.random_range(b.min_y..b.max_y);
             let heading = self.rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
             let pose = Pose { x_m: x, y_m: y, heading_rad: heading };
-            if w.is_valid_start(x, y, ep.start_clearance_m) && (!ep.start_escapable || w.can_circle_from(pose)) {
+            if w.is_valid_start(x, y, ep.start_clearance_m) && facing.is_none_or(|d| w.faces_surface_within(pose, d)) && (!ep.start_escapable || w.can_circle_from(pose)) {
                 self.reset_to(pose, obs);
                 return Ok(());
             }
         }
-        Err(SimError::NoFreeStart { map: w.map.name.clone(), clearance_m: ep.start_clearance_m, escapable: ep.start_escapable, attempts: ep.start_attempts })
+        Err(SimError::NoFreeStart { map: w.map.name.clone(), clearance_m: ep.start_clearance_m, escapable: ep.start_escapable, facing_within_m: facing, attempts: ep.start_attempts })
     }
 
     /// Starts an episode at a given pose (evaluation, tests). The pose is not checked.

@@ -17,8 +17,8 @@ pub enum SimError {
     #[error("invalid action for vehicle {vehicle}: {problem}")]
     InvalidAction { vehicle: usize, problem: String },
     /// Rejection sampling found no pose with the required clearance.
-    #[error("map `{map}`: no collision-free start with {clearance_m} m clearance{} found in {attempts} attempts", if *escapable { " from which the car can drive a full-lock circle (episode.start_escapable)" } else { "" })]
-    NoFreeStart { map: String, clearance_m: f64, escapable: bool, attempts: usize },
+    #[error("map `{map}`: no collision-free start with {clearance_m} m clearance{}{} found in {attempts} attempts", if *escapable { " from which the car can drive a full-lock circle (episode.start_escapable)" } else { "" }, match facing_within_m { Some(d) => format!(" facing a surface within {d} m (a hard start, episode.hard_start_share)"), None => String::new() })]
+    NoFreeStart { map: String, clearance_m: f64, escapable: bool, facing_within_m: Option<f64>, attempts: usize },
 }
 
 pub type Result<T, E = SimError> = std::result::Result<T, E>;

@@ -174,6 +174,53 @@ fn random_starts_are_never_in_collision_and_keep_clearance() {
     }
 }
 
+/// Hard starts (`episode.hard_start_share`): that share of starts faces a surface within
+/// `hard_start_within_m`, every start is still valid and escapable, and the rest are uniform.
+#[test]
+fn hard_starts_face_a_surface_nearby_in_their_share_and_stay_escapable() {
+    // Geometry in the empty box: 1.2 m from the south wall, facing it, sees it at 1.2 m; facing
+    // along it, the ray 45° to the right meets it at 1.2·√2 = 1.70 m.
+    let b = world("box", noiseless());
+    let p = Pose { x_m: 0.0, y_m: -12.5 + 1.2, heading_rad: -std::f64::consts::FRAC_PI_2 };
+    assert!(b.faces_surface_within(p, 1.5) && !b.faces_surface_within(p, 1.1));
+    let along = Pose { heading_rad: 0.0, ..p };
+    assert!(!b.faces_surface_within(along, 1.5) && b.faces_surface_within(along, 1.8));
+    assert!(!b.faces_surface_within(Pose { heading_rad: std::f64::consts::FRAC_PI_2, ..p }, 1.5));
+
+    let facing_share = |share: f64| {
+        let mut cfg = EnvConfig::default();
+        cfg.episode.start_clearance_m = 0.1;
+        cfg.episode.hard_start_share = share;
+        let w = world("env1", cfg);
+        let mut env = Env::new(Arc::clone(&w), 3);
+        let mut obs = vec![0.0; w.obs_dim()];
+        let n = 2000;
+        let mut facing = 0;
+        for _ in 0..n {
+            env.reset(&mut obs).unwrap();
+            let p = env.pose();
+            assert!(w.is_valid_start(p.x_m, p.y_m, 0.1) && w.can_circle_from(p), "share {share}: start {p:?}");
+            facing += usize::from(w.faces_surface_within(p, 1.5));
+        }
+        facing as f64 / n as f64
+    };
+    let natural = facing_share(0.0);
+    assert!(natural > 0.02 && natural < 0.4, "uniform starts facing a surface within 1.5 m: {natural}");
+    assert_eq!(facing_share(1.0), 1.0);
+    // Half hard: 0.5 + 0.5 × the uniform share, within four standard errors of 2,000 draws.
+    let half = facing_share(0.5);
+    let expect = 0.5 + 0.5 * natural;
+    assert!((half - expect).abs() < 4.0 * (expect * (1.0 - expect) / 2000.0).sqrt(), "{half} vs {expect}");
+
+    // A map with no hard start says so, naming the rule.
+    let mut cfg = noiseless();
+    cfg.episode.hard_start_share = 1.0;
+    cfg.episode.hard_start_within_m = 0.2;
+    cfg.episode.start_attempts = 2000;
+    let err = Env::new(world("box", cfg), 1).reset(&mut vec![0.0; b.obs_dim()]).unwrap_err().to_string();
+    assert!(err.contains("hard_start_share") && err.contains("0.2 m"), "{err}");
+}
+
 /// A start 0.83 m from a wall and facing it keeps the 0.5 m clearance (the centre needs 0.813 m)
 /// but has no way on: the car has no reverse, and at full lock its outer front corner still
 /// reaches 0.845 m ahead. `episode.start_escapable` keeps such starts out; 0.86 m is escapable.
