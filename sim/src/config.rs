@@ -66,13 +66,21 @@ pub struct SensorConfig {
     /// Mounting height: obstacles not taller than this are invisible (tree canopies are not
     /// obstacles at all) [inferred, AutoVRL: 0.15 m].
     pub height_m: f64,
+    /// Rays per beam: each beam reads the nearest of this many rays spread evenly across its
+    /// sector (the beam's direction ± half the spacing between beams; with one beam, the whole
+    /// field of view), as LiDAR navigation stacks down-sample a dense scan by taking each bin's
+    /// minimum. 1 (the default, and the paper's set-up) is a single ray per beam. More rays keep
+    /// a post or a wall end between two beams from going unseen (at 7 beams over 135° the rays
+    /// are 22.5° apart, 1.2 m at 3 m) without changing the observation's length [beyond the
+    /// paper, issue 18; docs/simulator.md, "Beams that see their sector"].
+    pub rays_per_beam: usize,
     /// Ray caster; does not change results.
     pub method: RaycastMethod,
 }
 
 impl Default for SensorConfig {
     fn default() -> Self {
-        SensorConfig { beams: 7, fov_rad: 3.0 * std::f64::consts::FRAC_PI_4, max_range_m: 12.0, noise_std_m: 0.1, height_m: 0.15, method: RaycastMethod::Auto }
+        SensorConfig { beams: 7, fov_rad: 3.0 * std::f64::consts::FRAC_PI_4, max_range_m: 12.0, noise_std_m: 0.1, height_m: 0.15, rays_per_beam: 1, method: RaycastMethod::Auto }
     }
 }
 
@@ -86,6 +94,31 @@ impl SensorConfig {
         let full_circle = self.fov_rad >= std::f64::consts::TAU - 1e-9;
         let step = if full_circle { self.fov_rad / n as f64 } else { self.fov_rad / (n - 1) as f64 };
         (0..n).map(|k| -self.fov_rad / 2.0 + k as f64 * step).collect()
+    }
+
+    /// The angle one beam's sector spans: the spacing between beams, or the field of view for
+    /// a single beam. Its `rays_per_beam` rays lie `sector / rays_per_beam` apart, centred on
+    /// the beam.
+    pub fn sector_rad(&self) -> f64 {
+        let n = self.beams;
+        if n == 1 {
+            self.fov_rad
+        } else if self.fov_rad >= std::f64::consts::TAU - 1e-9 {
+            self.fov_rad / n as f64
+        } else {
+            self.fov_rad / (n - 1) as f64
+        }
+    }
+
+    /// Every ray's angle relative to the heading, ascending: `rays_per_beam` per beam, beam by
+    /// beam. With one ray per beam these are [`SensorConfig::beam_angles_rad`].
+    pub fn ray_angles_rad(&self) -> Vec<f64> {
+        let m = self.rays_per_beam.max(1);
+        if m == 1 {
+            return self.beam_angles_rad();
+        }
+        let w = self.sector_rad();
+        self.beam_angles_rad().iter().flat_map(|a| (0..m).map(move |j| a + w * ((j as f64 + 0.5) / m as f64 - 0.5))).collect()
     }
 }
 
@@ -244,7 +277,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 16] = [
+        let checks: [(bool, &str); 17] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -252,6 +285,7 @@ impl EnvConfig {
             (v.v_max_mps > 0.0 && v.omega_max_radps >= 0.0, "vehicle.v_max_mps must be > 0 and omega_max_radps ≥ 0"),
             (v.dt_s > 0.0 && v.max_substep_m > 0.0, "vehicle.dt_s and max_substep_m must be > 0"),
             (s.beams >= 1 && s.beams <= 8192, "sensor.beams must be in 1..=8192"),
+            (s.rays_per_beam >= 1 && s.rays_per_beam <= 64 && s.beams.saturating_mul(s.rays_per_beam) <= 8192, "sensor.rays_per_beam must be in 1..=64, with beams × rays_per_beam ≤ 8192"),
             (s.fov_rad > 0.0 && s.fov_rad <= std::f64::consts::TAU + 1e-9, "sensor.fov_rad must be in (0, 2π]"),
             (s.max_range_m > 0.0, "sensor.max_range_m must be > 0"),
             (s.noise_std_m >= 0.0, "sensor.noise_std_m must be ≥ 0"),

@@ -152,3 +152,85 @@ fn both_ray_casters_give_the_same_scan_for_every_field_of_view() {
         }
     }
 }
+
+#[test]
+fn a_beam_with_several_rays_reads_the_nearest_surface_of_its_sector() {
+    use mapless_sim::sensor::RangeSensor;
+    use mapless_sim::{Pose, RaycastMethod, SensorConfig};
+    let deg = std::f64::consts::PI / 180.0;
+    // A post 0.15 m in radius, 3 m away at 10°: between the beams at 0° and 22.5°, it passes
+    // 0.52 m from the first and 0.65 m from the second, so one ray per beam misses it. With 5
+    // rays per beam, beam 0° casts rays at −9°, −4.5°, 0°, 4.5° and 9°; the one at 9° passes
+    // 3 sin 1° = 0.052 m from the post's centre and meets it at 3 cos 1° − √(0.15² − 0.052²).
+    let text = "format: mapless-vector-map/v1\nname: post\nbounds: { min: [-10, -10], max: [10, 10] }\nboundary_walls: false\nobstacles:\n  - circle: { center: [2.954423, 0.520945], radius: 0.15 }\n";
+    let map = Map::from_vector_yaml(text, std::path::Path::new("post.yaml")).unwrap();
+    let scene = map.scene(0.15, 1.0);
+    let origin = Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 };
+    let exact = |rays_per_beam, method| {
+        let mut s = RangeSensor::new(&SensorConfig { noise_std_m: 0.0, rays_per_beam, method, ..SensorConfig::default() });
+        let mut out = vec![0.0f32; 7];
+        s.scan_exact(&scene, &origin, &mut out);
+        out
+    };
+    for method in [RaycastMethod::PerBeam, RaycastMethod::Fan] {
+        assert_eq!(exact(1, method), vec![12.0; 7], "{method:?}: one ray per beam misses the post");
+        let five = exact(5, method);
+        let want = 3.0 * (1.0 * deg).cos() - (0.15f64.powi(2) - (3.0 * (1.0 * deg).sin()).powi(2)).sqrt();
+        assert!((five[3] as f64 - want).abs() < 1e-3, "{method:?}: beam 0° reads {} m, want {want:.4}", five[3]);
+        for k in [0, 1, 2, 4, 5, 6] {
+            assert_eq!(five[k], 12.0, "{method:?}: beam {k} has no ray near the post");
+        }
+    }
+
+    // On real maps: each beam reads the minimum of its rays, each cast on its own.
+    let mut rng = Pcg64Mcg::seed_from_u64(10);
+    for name in ["env2", "env3"] {
+        let map = Map::builtin(name).unwrap();
+        let scene = map.scene(0.15, 2.0);
+        for (beams, fov, m) in [(7usize, 135.0 * deg, 5usize), (7, 135.0 * deg, 4), (24, std::f64::consts::TAU, 3), (1, 90.0 * deg, 9)] {
+            let cfg = SensorConfig { beams, fov_rad: fov, noise_std_m: 0.0, rays_per_beam: m, ..SensorConfig::default() };
+            let w = cfg.sector_rad();
+            let rays = cfg.ray_angles_rad();
+            assert_eq!(rays.len(), beams * m);
+            for (i, pair) in rays.windows(2).enumerate() {
+                assert!((pair[1] - pair[0] - w / m as f64).abs() < 1e-9, "{name} {beams}×{m}: rays {i} and {} are not evenly spaced", i + 1);
+            }
+            for (k, centre) in cfg.beam_angles_rad().iter().enumerate() {
+                let mean = rays[k * m..(k + 1) * m].iter().sum::<f64>() / m as f64;
+                assert!((mean - centre).abs() < 1e-9, "beam {k}'s rays are centred on it");
+            }
+            let mut centre_only = RangeSensor::new(&SensorConfig { rays_per_beam: 1, ..cfg.clone() });
+            let (mut a, mut single) = (vec![0.0f32; beams], vec![0.0f32; beams]);
+            let mut shorter = 0;
+            for method in [RaycastMethod::PerBeam, RaycastMethod::Fan] {
+                let mut pooled = RangeSensor::new(&SensorConfig { method, ..cfg.clone() });
+                for _ in 0..40 {
+                    let (x, y) = free_point(&map, &mut rng);
+                    let pose = Pose { x_m: x, y_m: y, heading_rad: rng.random_range(-std::f64::consts::PI..std::f64::consts::PI) };
+                    pooled.scan_exact(&scene, &pose, &mut a);
+                    centre_only.scan_exact(&scene, &pose, &mut single);
+                    for k in 0..beams {
+                        let min = rays[k * m..(k + 1) * m]
+                            .iter()
+                            .map(|r| {
+                                // The direction as the sensor forms it: the ray's angle rotated by the heading, in f32.
+                                let ((hs, hc), (rs, rc)) = (pose.heading_rad.sin_cos(), r.sin_cos());
+                                let (hs, hc, rs, rc) = (hs as f32, hc as f32, rs as f32, rc as f32);
+                                scene.cast_ray(x as f32, y as f32, hc * rc - hs * rs, hs * rc + hc * rs, 12.0)
+                            })
+                            .fold(f32::INFINITY, f32::min);
+                        assert!((a[k] - min).abs() <= 1e-3 + 1e-4 * min, "{name} {beams}×{m} {method:?}: beam {k} reads {} vs its rays' minimum {min} at {pose:?}", a[k]);
+                        if m % 2 == 1 {
+                            // An odd count includes the beam's own direction: never farther than it.
+                            assert!(a[k] <= single[k] + 1e-3, "{name}: beam {k} {} > its centre ray {}", a[k], single[k]);
+                            shorter += (a[k] + 0.05 < single[k]) as usize;
+                        }
+                    }
+                }
+            }
+            if m % 2 == 1 {
+                assert!(shorter > 0, "{name} {beams}×{m}: the sector's other rays never saw anything nearer");
+            }
+        }
+    }
+}

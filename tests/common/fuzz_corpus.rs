@@ -1,5 +1,6 @@
 //! The fuzz targets' committed inputs, for the stable test suites that replay them
-//! (`sim`, `actor` and `replay` `tests/fuzz_corpora.rs`, which include this file by `#[path]`):
+//! (`sim`, `actor`, `replay`, `learner` and `cli` `tests/fuzz_corpora.rs`, which include this file
+//! by `#[path]`):
 //! `fuzz/corpus/<target>/` (seeds and what `cargo fuzz cmin` kept) and
 //! `fuzz/regressions/<target>/` (inputs that once found a bug).
 
