@@ -43,7 +43,7 @@ impl Default for VehicleConfig {
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum RaycastMethod {
-    /// Per-beam grid walk below 32 beams, fan sweep from 32 up.
+    /// Per-beam grid walk below 32 rays, fan sweep from 32 up.
     #[default]
     Auto,
     PerBeam,

@@ -10,7 +10,7 @@ use crate::config::{RaycastMethod, SensorConfig};
 use crate::scene::Scene;
 use crate::vehicle::Pose;
 
-/// Beam count from which `RaycastMethod::Auto` switches to the fan sweep (measured with
+/// Ray count from which `RaycastMethod::Auto` switches to the fan sweep (measured with
 /// `mapless bench sim`: the sweep wins from a few dozen beams on).
 pub const FAN_FROM_BEAMS: usize = 32;
 
