@@ -2,7 +2,9 @@
 //! learner and two actors on a tiny budget. Checked: transitions from every actor reach the
 //! replay; the learner's policy version advances at the actors (their rows carry newer
 //! versions); `kill -9` of an actor leaves training running and the supervisor restarts it;
-//! an interrupted run resumed with `--resume` continues from its checkpoint and its curve.
+//! an interrupted run resumed with `--resume` continues from its checkpoint and its curve; the
+//! best policy that the criterion's evaluations judged is kept, and the run keeps it or the
+//! learner's last, as their scores on the same starts say.
 
 #[path = "../../tests/common/workspace_build.rs"]
 mod workspace_build;
@@ -79,11 +81,12 @@ impl std::ops::DerefMut for Train {
 
 fn train(run: &Path, extra: &[&str]) -> Train {
     let mut cmd = Command::new(mapless());
-    cmd.arg("train").args(extra);
+    cmd.arg("train");
     for s in TINY {
         cmd.args(["--set", s]);
     }
-    cmd.env_remove("RUST_LOG").stdin(Stdio::null()).stdout(Stdio::null()).stderr(std::fs::File::create(run.with_extension("stderr")).unwrap());
+    // After TINY: a `--set` among `extra` overrides it.
+    cmd.args(extra).env_remove("RUST_LOG").stdin(Stdio::null()).stdout(Stdio::null()).stderr(std::fs::File::create(run.with_extension("stderr")).unwrap());
     Train(cmd.spawn().expect("mapless train starts"))
 }
 
@@ -152,7 +155,11 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     let run_arg = run.to_string_lossy().into_owned();
     // The test stops the run itself: a tiny run can reach the preset's 10,000 episodes in
     // half a minute, before the kill-and-restart and a progress evaluation have been seen.
-    let mut child = train(&run, &["--preset", "env1-sac", "--actors", "2", "--vehicles", "2", "--episodes", "10000000", "--run", &run_arg]);
+    // The criterion is evaluated whenever its averages hold (here: always) and is never met,
+    // so the run keeps the best policy those evaluations judged (`stop.keep_best`).
+    let never_met = ["stop.average_steps=1", "stop.min_episodes=null", "stop.eval_eqs=1e9", "stop.eval_episodes=3"].map(|s| ["--set", s]).concat();
+    let args = [&["--preset", "env1-sac", "--actors", "2", "--vehicles", "2", "--episodes", "10000000", "--run", &run_arg][..], &never_met].concat();
+    let mut child = train(&run, &args);
 
     let endpoints = wait_for("endpoints.json", Duration::from_secs(180), &mut child, &run, || json(&run.join("endpoints.json")));
     let replay_uri = endpoints["replay"].as_str().unwrap().to_owned();
@@ -196,6 +203,15 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
         text.lines().any(|l| l.split(',').nth(1) == Some("progress") && l.split(',').nth(2).and_then(|v| v.parse::<u64>().ok()).is_some_and(|v| v >= 3)).then_some(())
     });
 
+    // ... and the criterion's: the best policy it judged so far is kept beside the newest.
+    wait_for("a criteria evaluation in evals.csv", Duration::from_secs(120), &mut child, &run, || {
+        let text = std::fs::read_to_string(run.join("evals.csv")).ok()?;
+        text.lines().any(|l| l.split(',').nth(1) == Some("criteria")).then_some(())
+    });
+    let best = json(&run.join("policy-best.json")).expect("policy-best.json");
+    assert_eq!(best["episodes"].as_u64(), Some(3), "{best}");
+    assert!(run.join("policy-best.safetensors").exists());
+
     // Stop (as Ctrl-C would): a final checkpoint, the curve, a summary.
     std::thread::sleep(Duration::from_secs(3));
     sigterm(child.id());
@@ -210,7 +226,18 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     assert!(run.join("curves.png").exists() && run.join("policy.safetensors").exists());
     assert!(run.join("eval").join("episode-1.png").exists(), "evaluation trajectory drawn");
     let evals = std::fs::read_to_string(run.join("evals.csv")).unwrap();
-    assert!(evals.lines().last().unwrap().split(',').nth(1) == Some("final"), "{evals}");
+    let kinds: Vec<&str> = evals.lines().filter_map(|l| l.split(',').nth(1)).collect();
+    assert_eq!(kinds[kinds.len() - 3..], ["best", "last", "final"], "the best policy and the learner's last are scored on the same starts, then the kept one is evaluated: {evals}");
+    // The run's policy is the best one evaluated or the learner's last, as summary.json says.
+    let kept = first["kept_policy"].as_str().expect("summary.json says which policy the run kept");
+    let read = |f: &str| std::fs::read(run.join(f)).unwrap();
+    if kept.starts_with("the best one evaluated while training") {
+        assert_eq!(read("policy.safetensors"), read("policy-best.safetensors"), "{kept}");
+        assert!(run.join("policy-last.safetensors").exists(), "{kept}");
+    } else {
+        assert!(kept.starts_with("the learner's last (v"), "{kept}");
+        assert!(!run.join("policy-last.safetensors").exists(), "{kept}");
+    }
     // Every log line of every process names the run, the role and (actors) the actor id.
     for (file, role) in [("replay.log", "replay"), ("learner.log", "learner"), ("actor-0.log", "actor"), ("actor-1.log", "actor")] {
         let text = std::fs::read_to_string(run.join("logs").join(file)).unwrap();

@@ -22,6 +22,7 @@ pub const PRESETS: &[(&str, &str)] = &[
     ("env2-ddpg", include_str!("../../../presets/env2-ddpg.yaml")),
     ("outdoor20-sac", include_str!("../../../presets/outdoor20-sac.yaml")),
     ("explore-sac", include_str!("../../../presets/explore-sac.yaml")),
+    ("explore-td3", include_str!("../../../presets/explore-td3.yaml")),
 ];
 
 /// When a run stops by itself (whichever comes first). Moving averages are over the last
@@ -63,6 +64,15 @@ pub struct StopCriteria {
     /// the order-`window` averages of return and steps stay within this fraction of their
     /// final values [ours; the paper states no rule, see `protocol::convergence_episode`].
     pub convergence_tolerance: f64,
+    /// A run that stops without meeting its criteria keeps as its policy the best one that its
+    /// evaluations of the criterion judged (the lowest share of collisions, then the highest
+    /// mean EQS; kept as `policy-best.safetensors` as the run goes) when, evaluated again, it
+    /// beats the learner's last one on the same fresh starts, the last one beside it as
+    /// `policy-last.safetensors`; false:
+    /// the learner's last one [ours, as Stable-Baselines3's `EvalCallback` keeps its
+    /// `best_model`: an off-policy critic can diverge late in a run, and a time limit then
+    /// stops on a policy worse than one it had (docs/cluster.md, "The best policy a run had")].
+    pub keep_best: bool,
 }
 
 impl Default for StopCriteria {
@@ -79,6 +89,7 @@ impl Default for StopCriteria {
             eval_episodes: 10,
             min_episodes: None,
             convergence_tolerance: 0.1,
+            keep_best: true,
         }
     }
 }

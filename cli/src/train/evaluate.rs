@@ -1,6 +1,7 @@
 //! Evaluations of the run's policy: of the newest one every `eval.every_minutes` while training,
 //! of a copy of it whenever the moving averages hold and the stop criterion asks for an
-//! evaluation, of the final one at the end; each recorded as a line of `evals.csv`.
+//! evaluation (the best of those copies kept as `policy-best.safetensors`), of the final one at
+//! the end; each recorded as a line of `evals.csv`.
 //! Those made while training run on threads of their own: they must not hold up the
 //! supervision.
 
@@ -12,10 +13,11 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use mapless_sim::EnvConfig;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::config::{EvalSettings, TrainConfig};
 use super::episodes::truncate_torn_line;
+use super::folder::write_atomic;
 use super::status::{Milestone, Status};
 use crate::eval::{self, EvalSummary};
 
@@ -51,6 +53,36 @@ struct GateEval {
     handle: JoinHandle<Result<EvalSummary>>,
 }
 
+/// How an evaluation of the criterion scored a policy: what choosing the best one compares
+/// (`policy-best.json` keeps that of `policy-best.safetensors`, so a resumed run goes on
+/// comparing with it).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub(crate) struct Score {
+    pub(crate) policy_version: u64,
+    /// When the evaluation ended (seconds of the whole run).
+    pub(crate) wall_s: f64,
+    pub(crate) episodes: usize,
+    pub(crate) collisions: u32,
+    pub(crate) mean_eqs: f64,
+}
+
+impl Score {
+    fn of(s: &EvalSummary, wall_s: f64) -> Score {
+        Score { policy_version: s.policy_version, wall_s, episodes: s.episodes.len(), collisions: s.collisions, mean_eqs: s.mean_eqs }
+    }
+
+    /// A lower share of episodes that collided, then (the same share) a higher mean EQS.
+    fn beats(&self, other: &Score) -> bool {
+        // Shares compared exactly: c₁/n₁ < c₂/n₂ ⇔ c₁·n₂ < c₂·n₁.
+        let (mine, theirs) = (u64::from(self.collisions) * other.episodes as u64, u64::from(other.collisions) * self.episodes as u64);
+        mine < theirs || (mine == theirs && self.mean_eqs > other.mean_eqs)
+    }
+
+    fn describe(&self) -> String {
+        format!("v{}: {} of {} episodes collided, mean EQS {:.1}", self.policy_version, self.collisions, self.episodes, self.mean_eqs)
+    }
+}
+
 /// The run's evaluations.
 pub(crate) struct Evaluations {
     run: PathBuf,
@@ -64,6 +96,9 @@ pub(crate) struct Evaluations {
     /// criterion selects the first policy that passes on `seed`'s starts; judged again on those
     /// it would pass by construction, so the final figures come from fresh starts.
     final_seed: u64,
+    /// The seed of the evaluations that choose the run's policy at the end (`stop.keep_best`):
+    /// starts that neither the criterion's evaluations nor the final one meet.
+    choice_seed: u64,
     settings: EvalSettings,
     /// Episodes of an evaluation of the stop criterion.
     gate_episodes: u32,
@@ -72,6 +107,9 @@ pub(crate) struct Evaluations {
     last_progress: Instant,
     gate: Option<GateEval>,
     last_gate: Option<Instant>,
+    /// The best score of an evaluation of the criterion so far (its policy in
+    /// `policy-best.safetensors`).
+    best: Option<Score>,
 }
 
 impl Evaluations {
@@ -82,12 +120,14 @@ impl Evaluations {
             env: cfg.env.clone(),
             seed: cfg.seed.wrapping_add(1_000_003),
             final_seed: cfg.seed.wrapping_add(2_000_003),
+            choice_seed: cfg.seed.wrapping_add(3_000_003),
             settings: cfg.eval.clone(),
             gate_episodes: cfg.stop.eval_episodes,
             progress: None,
             last_progress: Instant::now(),
             gate: None,
             last_gate: None,
+            best: read_best(run),
         }
     }
 
@@ -99,6 +139,15 @@ impl Evaluations {
     /// The copy of the policy that an evaluation of the stop criterion judges.
     fn gate_policy(&self) -> PathBuf {
         self.run.join("policy-criteria.safetensors")
+    }
+
+    /// The best policy an evaluation of the criterion judged, and its score.
+    fn best_policy(&self) -> PathBuf {
+        self.run.join("policy-best.safetensors")
+    }
+
+    fn best_score(&self) -> PathBuf {
+        self.run.join("policy-best.json")
     }
 
     /// The evaluation of the newest policy as the run goes: records one that ended, starts the
@@ -166,10 +215,13 @@ impl Evaluations {
         }
     }
 
-    fn record_gate(&self, g: GateEval, status: &Status) -> Result<Option<(Milestone, EvalSummary)>> {
+    fn record_gate(&mut self, g: GateEval, status: &Status) -> Result<Option<(Milestone, EvalSummary)>> {
         match g.handle.join() {
             Ok(Ok(s)) => {
                 append_eval(&self.run, status.wall_s(), "criteria", &s)?;
+                if let Err(e) = self.consider(Score::of(&s, status.wall_s())) {
+                    tracing::warn!(error = %format!("{e:#}"), "keeping the best policy evaluated failed (the run goes on)");
+                }
                 Ok(Some((g.at, s)))
             }
             Ok(Err(e)) => {
@@ -181,6 +233,75 @@ impl Evaluations {
                 Ok(None)
             }
         }
+    }
+
+    /// The policy an evaluation of the criterion judged (`policy-criteria.safetensors`), scored:
+    /// when it beats the best so far, it becomes `policy-best.safetensors` (whole or not at
+    /// all, its score beside it).
+    fn consider(&mut self, score: Score) -> Result<()> {
+        if self.best.as_ref().is_some_and(|b| !score.beats(b)) {
+            return Ok(());
+        }
+        let bytes = fs::read(self.gate_policy()).with_context(|| format!("reading {}", self.gate_policy().display()))?;
+        mapless_proto::atomic_file::write_file_atomically(&self.best_policy(), &bytes).with_context(|| format!("writing {}", self.best_policy().display()))?;
+        write_atomic(&self.best_score(), &serde_json::to_string_pretty(&score)?)?;
+        tracing::info!(policy_version = score.policy_version, "the best policy evaluated so far: {}", score.describe());
+        self.best = Some(score);
+        Ok(())
+    }
+
+    /// A run that stopped without meeting its criteria (with `stop.keep_best`): the best policy
+    /// evaluated while training and the learner's last one are evaluated again, on starts of
+    /// their own (`best` and `last` lines of `evals.csv`), and the best one becomes the run's
+    /// policy when it beats the last there. Its score while training was the best of many, and
+    /// so flattered by chance; on fresh starts the two compare fairly. Says which policy the run
+    /// keeps, and why.
+    pub(crate) fn keep_the_best_policy(&self, status: &Status) -> Result<String> {
+        let Some(best) = &self.best else { return Ok(LAST.to_owned()) };
+        if !self.policy().exists() {
+            return Ok(LAST.to_owned());
+        }
+        eprintln!(
+            "choosing the run's policy: the best one evaluated while training ({}, at {:.0} s) and the learner's last, {} episodes each on starts of their own ...",
+            best.describe(),
+            best.wall_s,
+            self.gate_episodes
+        );
+        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, &self.env, self.gate_episodes, self.choice_seed, None) {
+            Ok(s) => append_eval(&self.run, status.wall_s(), kind, &s).map(|()| Some(Score::of(&s, status.wall_s()))),
+            Err(e) => {
+                tracing::warn!(error = %format!("{e:#}"), "evaluation of {} failed", policy.display());
+                Ok(None)
+            }
+        };
+        let (again, last) = (score(self.best_policy(), "best")?, score(self.policy(), "last")?);
+        let kept = self.keep_best_over(again.as_ref(), last.as_ref())?;
+        eprintln!("  the run's policy: {kept}");
+        Ok(kept)
+    }
+
+    /// The best policy becomes the run's when, on the same starts, it (`best`) beats the
+    /// learner's last one (`last`), the last one beside it as `policy-last.safetensors`; none
+    /// stands for an evaluation that failed: the other policy is kept (the last when both did).
+    fn keep_best_over(&self, best: Option<&Score>, last: Option<&Score>) -> Result<String> {
+        let (Some(was), Some(b)) = (&self.best, best) else {
+            return Ok(match self.best.is_some() {
+                true => format!("{LAST}: the best one evaluated while training could not be evaluated again"),
+                false => LAST.to_owned(),
+            });
+        };
+        if let Some(l) = last
+            && !b.beats(l)
+        {
+            return Ok(format!("{LAST} ({}), not beaten by the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
+        }
+        let (policy, saved) = (self.policy(), self.run.join("policy-last.safetensors"));
+        fs::rename(&policy, &saved).with_context(|| format!("renaming {}", policy.display()))?;
+        fs::copy(self.best_policy(), &policy).with_context(|| format!("copying {} to {}", self.best_policy().display(), policy.display()))?;
+        Ok(match last {
+            Some(l) => format!("the best one evaluated while training (at {:.0} s, then {}; now {}), over {LAST} ({})", was.wall_s, was.describe(), b.describe(), l.describe()),
+            None => format!("the best one evaluated while training (at {:.0} s, then {}; now {}): {LAST} could not be evaluated", was.wall_s, was.describe(), b.describe()),
+        })
     }
 
     /// A run stopped by its criteria keeps the policy that met them as its policy; the
@@ -221,6 +342,25 @@ impl Evaluations {
                 tracing::warn!(error = %format!("{e:#}"), "evaluation failed");
                 Ok(None)
             }
+        }
+    }
+}
+
+/// What a run keeps when nothing else is chosen.
+pub(crate) const LAST: &str = "the learner's last";
+
+/// The score of `policy-best.safetensors` from an earlier session of the run, if both files are
+/// there and the score reads.
+fn read_best(run: &Path) -> Option<Score> {
+    if !run.join("policy-best.safetensors").exists() {
+        return None;
+    }
+    let text = fs::read_to_string(run.join("policy-best.json")).ok()?;
+    match serde_json::from_str(&text) {
+        Ok(s) => Some(s),
+        Err(e) => {
+            tracing::warn!(error = %e, "policy-best.json does not read: the best policy is chosen afresh");
+            None
         }
     }
 }
@@ -308,5 +448,74 @@ mod tests {
         evals.keep_the_policy_that_met_the_criteria().unwrap();
         let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
         assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("met".to_owned(), "last".to_owned()));
+    }
+
+    fn score(version: u64, episodes: usize, collisions: u32, mean_eqs: f64) -> Score {
+        Score { policy_version: version, wall_s: version as f64, episodes, collisions, mean_eqs }
+    }
+
+    #[test]
+    fn a_policy_is_better_for_a_lower_share_of_collisions_then_a_higher_eqs() {
+        assert!(score(1, 20, 1, 50.0).beats(&score(2, 10, 1, 500.0)), "1 of 20 beats 1 of 10 whatever the EQS");
+        assert!(!score(1, 10, 1, 500.0).beats(&score(2, 20, 1, 50.0)));
+        assert!(score(1, 20, 2, 90.0).beats(&score(2, 10, 1, 80.0)) && !score(2, 10, 1, 80.0).beats(&score(1, 20, 2, 90.0)), "the same share: the EQS decides");
+        assert!(!score(1, 10, 0, 80.0).beats(&score(2, 10, 0, 80.0)), "a tie keeps the one before");
+    }
+
+    /// An evaluation of the criterion of the policy `content`, scored.
+    fn judged(evals: &mut Evaluations, content: &str, s: Score) {
+        std::fs::write(evals.gate_policy(), content).unwrap();
+        evals.consider(s).unwrap();
+    }
+
+    #[test]
+    fn the_best_policy_evaluated_is_kept_as_the_run_goes_and_across_a_resume() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = super::super::config::preset_config("explore-sac").unwrap();
+        let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+        let mut evals = Evaluations::new(&cfg, dir.path());
+        judged(&mut evals, "v1", score(1, 20, 3, 200.0));
+        judged(&mut evals, "v2", score(2, 20, 1, 100.0));
+        judged(&mut evals, "v3", score(3, 20, 1, 90.0));
+        judged(&mut evals, "v4", score(4, 20, 9, 400.0));
+        assert_eq!(read("policy-best.safetensors"), "v2");
+        let mut resumed = Evaluations::new(&cfg, dir.path());
+        assert_eq!(resumed.best, Some(score(2, 20, 1, 100.0)), "a resumed run compares with the best of its earlier sessions");
+        judged(&mut resumed, "v5", score(5, 20, 2, 300.0));
+        assert_eq!(read("policy-best.safetensors"), "v2");
+        judged(&mut resumed, "v6", score(6, 20, 0, 10.0));
+        assert_eq!(read("policy-best.safetensors"), "v6");
+        std::fs::write(dir.path().join("policy-best.json"), "{ torn").unwrap();
+        assert_eq!(Evaluations::new(&cfg, dir.path()).best, None, "a score that does not read is chosen afresh");
+    }
+
+    #[test]
+    fn at_the_end_the_best_policy_replaces_the_last_only_when_it_beats_it_on_the_same_fresh_starts() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = super::super::config::preset_config("explore-sac").unwrap();
+        let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+        let mut evals = Evaluations::new(&cfg, dir.path());
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 0, 90.0)), Some(&score(9, 20, 20, 0.0))).unwrap();
+        assert_eq!(kept, LAST, "nothing evaluated while training: the last stays");
+        judged(&mut evals, "best", score(2, 20, 0, 100.0));
+
+        // Its score while training was the best of many; evaluated again it does worse than the
+        // last on the same starts: the last stays.
+        let kept = evals.keep_best_over(Some(&score(2, 20, 3, 100.0)), Some(&score(9, 20, 2, 50.0))).unwrap();
+        assert!(kept.starts_with("the learner's last (v9"), "{kept}");
+        assert_eq!(read("policy.safetensors"), "last");
+        assert!(!dir.path().join("policy-last.safetensors").exists());
+        let kept = evals.keep_best_over(None, Some(&score(9, 20, 20, 0.0))).unwrap();
+        assert!(kept.contains("could not be evaluated again") && read("policy.safetensors") == "last", "{kept}");
+
+        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), Some(&score(9, 20, 10, 500.0))).unwrap();
+        assert!(kept.starts_with("the best one evaluated while training (at 2 s"), "{kept}");
+        assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "last".to_owned()));
+
+        std::fs::write(evals.policy(), "another last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), None).unwrap();
+        assert!(kept.contains("could not be evaluated"), "{kept}");
+        assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "another last".to_owned()));
     }
 }

@@ -121,11 +121,17 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
     if let Some((at, s)) = evals.gate_after_stop(&status)? {
         rules.judge_after_stop(at, s);
     }
-    if rules.met_by_evaluation() {
+    let kept_policy = if rules.met_by_evaluation() {
         evals.keep_the_policy_that_met_the_criteria()?;
-    }
+        "the one that met the criteria (criteria_evaluation)".to_owned()
+    } else if cfg.stop.keep_best {
+        evals.keep_the_best_policy(&status)?
+    } else {
+        evaluate::LAST.to_owned()
+    };
     let evaluation = evals.final_evaluation(&status)?;
-    let end = End { wall_s: status.wall_s(), env_steps: status.env_steps, learner: status.learner_end(&late), actor_restarts, steady: status.steady_rates(stopped_at), evaluation };
+    let learner = status.learner_end(&late);
+    let end = End { wall_s: status.wall_s(), env_steps: status.env_steps, learner, actor_restarts, steady: status.steady_rates(stopped_at), evaluation, kept_policy: Some(kept_policy) };
     let summary = Summary::new(&run.dir, &cfg, &episodes, rules.outcome(), end);
     summary.write(&run.dir)?;
     progress::closing(&summary, &run.dir);

@@ -189,7 +189,7 @@ pub fn monitor(args: &MonitorArgs) -> Result<ExitCode> {
         None => format!("{INTERRUPTED}: the monitor was stopped (the cluster is not its to stop)"),
     };
     let learner = LearnerEnd { updates: status.learner.updates, weights_version: status.learner.weights_version };
-    let end = End { wall_s: status.wall_s(), env_steps: status.env_steps, learner, actor_restarts: 0, steady: status.steady_rates(stopped_at), evaluation };
+    let end = End { wall_s: status.wall_s(), env_steps: status.env_steps, learner, actor_restarts: 0, steady: status.steady_rates(stopped_at), evaluation, kept_policy: None };
     let summary = Summary::new(&run.dir, &train, &episodes, outcome, end);
     summary.write(&run.dir)?;
     tracing::info!(episodes = summary.episodes, env_steps = summary.env_steps, updates = summary.updates, "wrote {}", run.dir.join("summary.json").display());

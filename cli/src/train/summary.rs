@@ -43,6 +43,10 @@ pub struct Summary {
     pub actor_restarts: u32,
     /// Throughput after start-up (from 20 s, or a third of a time-limited run, to the stop).
     pub steady: Option<Rates>,
+    /// Which policy is the run's `policy.safetensors`, and why (`stop.keep_best`); none from
+    /// `mapless monitor` (the cluster's policy is not its to choose) and in older summaries.
+    #[serde(default)]
+    pub kept_policy: Option<String>,
     pub evaluation: Option<EvalSummary>,
 }
 
@@ -60,6 +64,7 @@ pub(crate) struct End {
     pub(crate) actor_restarts: u32,
     pub(crate) steady: Option<Rates>,
     pub(crate) evaluation: Option<EvalSummary>,
+    pub(crate) kept_policy: Option<String>,
 }
 
 impl Summary {
@@ -83,6 +88,7 @@ impl Summary {
             convergence_episode: protocol::convergence_episode(&episodes.rows, w, cfg.stop.convergence_tolerance),
             actor_restarts: end.actor_restarts,
             steady: end.steady,
+            kept_policy: end.kept_policy,
             evaluation: end.evaluation,
         }
     }
@@ -103,7 +109,7 @@ mod tests {
         let cfg = super::super::config::preset_config("env1-sac").unwrap();
         let episodes = Episodes::open(dir.path()).unwrap();
         let outcome = Outcome { stopped_because: "0.1 minutes".into(), criteria_met_at: None, criteria_evaluation: None };
-        let end = End { wall_s: 6.5, env_steps: 10, learner: LearnerEnd { updates: 3, weights_version: 2 }, actor_restarts: 1, steady: None, evaluation: None };
+        let end = End { wall_s: 6.5, env_steps: 10, learner: LearnerEnd { updates: 3, weights_version: 2 }, actor_restarts: 1, steady: None, evaluation: None, kept_policy: None };
         let s = Summary::new(dir.path(), &cfg, &episodes, outcome, end);
         s.write(dir.path()).unwrap();
         let text = std::fs::read_to_string(dir.path().join("summary.json")).unwrap();
