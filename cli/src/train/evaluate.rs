@@ -78,6 +78,13 @@ impl Score {
         mine < theirs || (mine == theirs && self.mean_eqs > other.mean_eqs)
     }
 
+    /// Whether its share of collisions is clearly below `other`'s: their 95 % Wilson score
+    /// intervals do not overlap (of 20 episodes: 0 against 7 or more, 1 against 9 or more). A
+    /// collision or two in 20 is noise between two policies; a collapse is not.
+    fn clearly_safer_than(&self, other: &Score) -> bool {
+        wilson_95(self.collisions, self.episodes).1 < wilson_95(other.collisions, other.episodes).0
+    }
+
     fn describe(&self) -> String {
         format!("v{}: {} of {} episodes collided, mean EQS {:.1}", self.policy_version, self.collisions, self.episodes, self.mean_eqs)
     }
@@ -253,9 +260,10 @@ impl Evaluations {
     /// A run that stopped without meeting its criteria (with `stop.keep_best`): the best policy
     /// evaluated while training and the learner's last one are evaluated again, on starts of
     /// their own (`best` and `last` lines of `evals.csv`), and the best one becomes the run's
-    /// policy when it beats the last there. Its score while training was the best of many, and
-    /// so flattered by chance; on fresh starts the two compare fairly. Says which policy the run
-    /// keeps, and why.
+    /// policy when it is clearly safer there ([`Score::clearly_safer_than`]): a guard against
+    /// a run that collapsed, not a choice between two policies a collision apart. Its score
+    /// while training was the best of many, and so flattered by chance; on fresh starts the two
+    /// compare fairly. Says which policy the run keeps, and why.
     pub(crate) fn keep_the_best_policy(&self, status: &Status) -> Result<String> {
         let Some(best) = &self.best else { return Ok(LAST.to_owned()) };
         if !self.policy().exists() {
@@ -280,8 +288,8 @@ impl Evaluations {
         Ok(kept)
     }
 
-    /// The best policy becomes the run's when, on the same starts, it (`best`) beats the
-    /// learner's last one (`last`), the last one beside it as `policy-last.safetensors`; none
+    /// The best policy becomes the run's when, on the same starts, it (`best`) is clearly safer
+    /// than the learner's last one (`last`), the last one beside it as `policy-last.safetensors`; none
     /// stands for an evaluation that failed: the other policy is kept (the last when both did).
     fn keep_best_over(&self, best: Option<&Score>, last: Option<&Score>) -> Result<String> {
         let (Some(was), Some(b)) = (&self.best, best) else {
@@ -291,9 +299,9 @@ impl Evaluations {
             });
         };
         if let Some(l) = last
-            && !b.beats(l)
+            && !b.clearly_safer_than(l)
         {
-            return Ok(format!("{LAST} ({}), not beaten by the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
+            return Ok(format!("{LAST} ({}), not clearly safer than the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
         }
         let (policy, saved) = (self.policy(), self.run.join("policy-last.safetensors"));
         fs::rename(&policy, &saved).with_context(|| format!("renaming {}", policy.display()))?;
@@ -344,6 +352,18 @@ impl Evaluations {
             }
         }
     }
+}
+
+/// The 95 % Wilson score interval of a share of `k` in `n` (all of [0, 1] for no episode).
+fn wilson_95(k: u32, n: usize) -> (f64, f64) {
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let (z2, n) = (1.959_964_f64.powi(2), n as f64);
+    let p = f64::from(k) / n;
+    let centre = (p + z2 / (2.0 * n)) / (1.0 + z2 / n);
+    let half = (z2 * (p * (1.0 - p) / n + z2 / (4.0 * n * n))).sqrt() / (1.0 + z2 / n);
+    ((centre - half).max(0.0), (centre + half).min(1.0))
 }
 
 /// What a run keeps when nothing else is chosen.
@@ -462,6 +482,18 @@ mod tests {
         assert!(!score(1, 10, 0, 80.0).beats(&score(2, 10, 0, 80.0)), "a tie keeps the one before");
     }
 
+    #[test]
+    fn clearly_safer_means_the_95_percent_intervals_of_the_collision_shares_do_not_overlap() {
+        // Wilson intervals, by hand: 1 of 20 → [0.0089, 0.2361]; 9 of 20 → [0.2582, 0.6579].
+        let (lo, hi) = wilson_95(1, 20);
+        assert!((lo - 0.0089).abs() < 1e-3 && (hi - 0.2361).abs() < 1e-3, "{lo} {hi}");
+        let (lo, hi) = wilson_95(9, 20);
+        assert!((lo - 0.2582).abs() < 1e-3 && (hi - 0.6579).abs() < 1e-3, "{lo} {hi}");
+        assert_eq!(wilson_95(0, 0), (0.0, 1.0));
+        let first_clearly_worse = |best| (0..=20).find(|&l| score(1, 20, best, 0.0).clearly_safer_than(&score(2, 20, l, 0.0)));
+        assert_eq!((first_clearly_worse(0), first_clearly_worse(1), first_clearly_worse(20)), (Some(7), Some(9), None));
+    }
+
     /// An evaluation of the criterion of the policy `content`, scored.
     fn judged(evals: &mut Evaluations, content: &str, s: Score) {
         std::fs::write(evals.gate_policy(), content).unwrap();
@@ -490,7 +522,7 @@ mod tests {
     }
 
     #[test]
-    fn at_the_end_the_best_policy_replaces_the_last_only_when_it_beats_it_on_the_same_fresh_starts() {
+    fn at_the_end_the_best_policy_replaces_the_last_only_when_clearly_safer_on_the_same_fresh_starts() {
         let dir = tempfile::tempdir().unwrap();
         let cfg = super::super::config::preset_config("explore-sac").unwrap();
         let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
@@ -501,15 +533,17 @@ mod tests {
         judged(&mut evals, "best", score(2, 20, 0, 100.0));
 
         // Its score while training was the best of many; evaluated again it does worse than the
-        // last on the same starts: the last stays.
-        let kept = evals.keep_best_over(Some(&score(2, 20, 3, 100.0)), Some(&score(9, 20, 2, 50.0))).unwrap();
-        assert!(kept.starts_with("the learner's last (v9"), "{kept}");
+        // last on the same starts, or better by a collision or three: the last stays.
+        for (best, last) in [(3, 2), (1, 4), (0, 6), (1, 8)] {
+            let kept = evals.keep_best_over(Some(&score(2, 20, best, 100.0)), Some(&score(9, 20, last, 50.0))).unwrap();
+            assert!(kept.starts_with("the learner's last (v9"), "{best} against {last}: {kept}");
+        }
         assert_eq!(read("policy.safetensors"), "last");
         assert!(!dir.path().join("policy-last.safetensors").exists());
         let kept = evals.keep_best_over(None, Some(&score(9, 20, 20, 0.0))).unwrap();
         assert!(kept.contains("could not be evaluated again") && read("policy.safetensors") == "last", "{kept}");
 
-        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), Some(&score(9, 20, 10, 500.0))).unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), Some(&score(9, 20, 9, 500.0))).unwrap();
         assert!(kept.starts_with("the best one evaluated while training (at 2 s"), "{kept}");
         assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "last".to_owned()));
 
