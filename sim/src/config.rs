@@ -91,8 +91,7 @@ impl SensorConfig {
         if n == 1 {
             return vec![0.0];
         }
-        let full_circle = self.fov_rad >= std::f64::consts::TAU - 1e-9;
-        let step = if full_circle { self.fov_rad / n as f64 } else { self.fov_rad / (n - 1) as f64 };
+        let step = self.sector_rad();
         (0..n).map(|k| -self.fov_rad / 2.0 + k as f64 * step).collect()
     }
 
