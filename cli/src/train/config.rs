@@ -69,10 +69,9 @@ pub struct StopCriteria {
     /// mean EQS; kept as `policy-best.safetensors` as the run goes) when, evaluated again, it
     /// is clearly safer than the learner's last one on the same fresh starts (95 % intervals
     /// of their collision shares apart), the last one beside it as `policy-last.safetensors`;
-    /// false:
-    /// the learner's last one [ours, as Stable-Baselines3's `EvalCallback` keeps its
+    /// false: the learner's last one [ours, as Stable-Baselines3's `EvalCallback` keeps its
     /// `best_model`: an off-policy critic can diverge late in a run, and a time limit then
-    /// stops on a policy worse than one it had (docs/cluster.md, "The best policy a run had")].
+    /// stops on a policy worse than one it had (docs/cluster.md, "A run")].
     pub keep_best: bool,
 }
 
