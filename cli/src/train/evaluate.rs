@@ -121,7 +121,7 @@ pub(crate) struct Evaluations {
 
 impl Evaluations {
     pub(crate) fn new(cfg: &TrainConfig, run: &Path) -> Evaluations {
-        Evaluations {
+        let mut evals = Evaluations {
             run: run.to_owned(),
             map: cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone()),
             env: cfg.env.clone(),
@@ -134,8 +134,10 @@ impl Evaluations {
             last_progress: Instant::now(),
             gate: None,
             last_gate: None,
-            best: read_best(run),
-        }
+            best: None,
+        };
+        evals.best = evals.read_best();
+        evals
     }
 
     /// The policy the learner publishes (and replaces as it goes).
@@ -155,6 +157,22 @@ impl Evaluations {
 
     fn best_score(&self) -> PathBuf {
         self.run.join("policy-best.json")
+    }
+
+    /// The score of `policy-best.safetensors` from an earlier session of the run, if both files
+    /// are there and the score reads.
+    fn read_best(&self) -> Option<Score> {
+        if !self.best_policy().exists() {
+            return None;
+        }
+        let text = fs::read_to_string(self.best_score()).ok()?;
+        match serde_json::from_str(&text) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                tracing::warn!(error = %e, "policy-best.json does not read: the best policy is chosen afresh");
+                None
+            }
+        }
     }
 
     /// The evaluation of the newest policy as the run goes: records one that ended, starts the
@@ -303,9 +321,7 @@ impl Evaluations {
         {
             return Ok(format!("{LAST} ({}), not clearly safer than the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
         }
-        let (policy, saved) = (self.policy(), self.run.join("policy-last.safetensors"));
-        fs::rename(&policy, &saved).with_context(|| format!("renaming {}", policy.display()))?;
-        fs::copy(self.best_policy(), &policy).with_context(|| format!("copying {} to {}", self.best_policy().display(), policy.display()))?;
+        self.make_the_runs_policy(&self.best_policy())?;
         Ok(match last {
             Some(l) => format!("the best one evaluated while training (at {:.0} s, then {}; now {}), over {LAST} ({})", was.wall_s, was.describe(), b.describe(), l.describe()),
             None => format!("the best one evaluated while training (at {:.0} s, then {}; now {}): {LAST} could not be evaluated", was.wall_s, was.describe(), b.describe()),
@@ -316,11 +332,17 @@ impl Evaluations {
     /// learner's last one (a few seconds of training later) stays beside it as
     /// `policy-last.safetensors`.
     pub(crate) fn keep_the_policy_that_met_the_criteria(&self) -> Result<()> {
-        let (policy, last, gate_policy) = (self.policy(), self.run.join("policy-last.safetensors"), self.gate_policy());
+        self.make_the_runs_policy(&self.gate_policy())
+    }
+
+    /// `chosen` becomes `policy.safetensors`; the learner's last policy, if there is one, is
+    /// kept beside it as `policy-last.safetensors`.
+    fn make_the_runs_policy(&self, chosen: &Path) -> Result<()> {
+        let (policy, last) = (self.policy(), self.run.join("policy-last.safetensors"));
         if policy.exists() {
             fs::rename(&policy, &last).with_context(|| format!("renaming {}", policy.display()))?;
         }
-        fs::copy(&gate_policy, &policy).with_context(|| format!("copying {} to {}", gate_policy.display(), policy.display()))?;
+        fs::copy(chosen, &policy).with_context(|| format!("copying {} to {}", chosen.display(), policy.display()))?;
         Ok(())
     }
 
@@ -368,22 +390,6 @@ fn wilson_95(k: u32, n: usize) -> (f64, f64) {
 
 /// What a run keeps when nothing else is chosen.
 pub(crate) const LAST: &str = "the learner's last";
-
-/// The score of `policy-best.safetensors` from an earlier session of the run, if both files are
-/// there and the score reads.
-fn read_best(run: &Path) -> Option<Score> {
-    if !run.join("policy-best.safetensors").exists() {
-        return None;
-    }
-    let text = fs::read_to_string(run.join("policy-best.json")).ok()?;
-    match serde_json::from_str(&text) {
-        Ok(s) => Some(s),
-        Err(e) => {
-            tracing::warn!(error = %e, "policy-best.json does not read: the best policy is chosen afresh");
-            None
-        }
-    }
-}
 
 /// A row of `evals.csv`: one per evaluation (while training, of the criterion, and final).
 #[derive(Serialize)]
