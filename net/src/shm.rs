@@ -119,12 +119,21 @@ impl ShmConfig {
         format!("{}/insert", self.prefix)
     }
 
-    /// The iceoryx2 configuration of this domain.
+    /// The iceoryx2 configuration of this domain, for writers and the service alike.
+    ///
+    /// One janitor per domain: no node cleans dead nodes implicitly (on its creation or
+    /// destruction, or on opening the service), as iceoryx2's defaults would. The replay's
+    /// ingest does it, explicitly and counted: on start, every `dead_node_scan_ms`, and when a
+    /// dead writer still claims an actor id. A restarted writer would otherwise race the
+    /// janitor for its predecessor's resources, and the cleanup would go unseen.
     pub fn iceoryx2_config(&self) -> Config {
         let mut config = Config::global_config().clone();
         if let Ok(prefix) = FileName::new(self.domain.as_bytes()) {
             config.global.prefix = prefix;
         }
+        config.global.node.cleanup_dead_nodes_on_creation = false;
+        config.global.node.cleanup_dead_nodes_on_destruction = false;
+        config.global.service.cleanup_dead_nodes_on_open = false;
         config
     }
 
@@ -363,8 +372,7 @@ struct Conn {
 impl Conn {
     fn open(cfg: &ShmConfig, actor_id: &str) -> Result<Conn, ShmError> {
         let svc = cfg.service_name();
-        // Creating a node also removes dead nodes' resources (iceoryx2's default), which is
-        // what a restarted actor wants after its predecessor was killed.
+        // A killed predecessor's resources are the service's to remove (see `iceoryx2_config`).
         let node = node_builder(actor_id).config(&cfg.iceoryx2_config()).create::<ClientSvc>().map_err(|e| closed(&svc, format!("cannot create an iceoryx2 node: {e:?}")))?;
         let name = ServiceName::new(&svc).map_err(|e| ShmError::InvalidConfig(format!("shm service name `{svc}`: {e:?}")))?;
         let service = rr_builder(&node, &name).open().map_err(|e| match e {

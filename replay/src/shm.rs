@@ -48,7 +48,9 @@
 //! "dead" and its shared memory behind. [`ShmIngest::spawn`] removes the resources of every
 //! dead node before it opens the service (a killed server's port would otherwise occupy the
 //! service's one server slot), force-removes the service if it is corrupted and no live node
-//! uses it, and a janitor thread repeats the dead-node cleanup every `dead_node_scan_ms`.
+//! uses it, and a janitor thread repeats the dead-node cleanup every `dead_node_scan_ms`. It is
+//! the domain's only cleaner: no writer's node cleans implicitly ([`ShmConfig::iceoryx2_config`]),
+//! so every cleanup is counted (`dead_nodes_cleaned`) and logged.
 //! Cleaning removes the dead writer's ports from the service, so the ingest thread's
 //! connection update skips them and keeps serving everyone else. The janitor has its own
 //! thread so that an insert blocked by the rate limiter never delays it; the ingest thread
@@ -230,14 +232,10 @@ impl Drop for ShmIngest {
     }
 }
 
-/// The server side's nodes clean dead nodes explicitly (and count them), not implicitly on
-/// node creation, destruction or service open as iceoryx2's defaults do.
+/// A server-side node. It cleans dead nodes explicitly (and counts them), never implicitly:
+/// see [`ShmConfig::iceoryx2_config`].
 fn server_node(cfg: &ShmConfig, name: &str) -> Result<Node<ServerSvc>, String> {
-    let mut config = cfg.iceoryx2_config();
-    config.global.node.cleanup_dead_nodes_on_creation = false;
-    config.global.node.cleanup_dead_nodes_on_destruction = false;
-    config.global.service.cleanup_dead_nodes_on_open = false;
-    node_builder(name).config(&config).create::<ServerSvc>().map_err(|e| format!("cannot create an iceoryx2 node: {e:?}"))
+    node_builder(name).config(&cfg.iceoryx2_config()).create::<ServerSvc>().map_err(|e| format!("cannot create an iceoryx2 node: {e:?}"))
 }
 
 /// Reclaims dead nodes' resources every `scan` until stopped. Its own thread and node, so a
