@@ -130,8 +130,9 @@ pub struct RewardBand {
     pub value: f64,
 }
 
-/// R = w_r r² + w_v v² − w_ω ω² + Σ bands, r the smallest range reading (metres), v and ω the
-/// commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
+/// R = w_r r² + w_v v² − w_ω ω² + Σ bands (+ `collision` on a step that ends in one), r the
+/// smallest range reading (metres), v and ω the commanded action (m/s, rad/s). Eq. (1) and
+/// eq. (2) are presets.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct RewardConfig {
@@ -143,6 +144,9 @@ pub struct RewardConfig {
     pub turn_penalty: f64,
     /// Distance bands [paper eq. 2: +2.0 for 2.0 < r < 2.5, −50 for r < 1.0; none in eq. 1].
     pub bands: Vec<RewardBand>,
+    /// Added to the reward of a step that ends in a collision, ≤ 0 [ours, beyond the paper
+    /// (issue 18): 0 in eq. 1 and eq. 2, where a collision costs only the value it ends].
+    pub collision: f64,
 }
 
 impl Default for RewardConfig {
@@ -154,7 +158,7 @@ impl Default for RewardConfig {
 impl RewardConfig {
     /// Paper eq. (1): exploration.
     pub fn exploration() -> Self {
-        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new() }
+        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0 }
     }
     /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
     pub fn search_and_rescue() -> Self {
@@ -276,7 +280,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 17] = [
+        let checks: [(bool, &str); 18] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -294,6 +298,7 @@ impl EnvConfig {
             (self.episode.hard_start_within_m > 0.0 && self.episode.hard_start_within_m.is_finite(), "episode.hard_start_within_m must be a finite number > 0 (metres)"),
             (self.exploration.cell_area_m2 > 0.0, "exploration.cell_area_m2 must be > 0"),
             (self.exploration.ring_width_m > 0.0, "exploration.ring_width_m must be > 0"),
+            (self.reward.collision.is_finite() && self.reward.collision <= 0.0, "reward.collision must be a finite number ≤ 0"),
         ];
         let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());
         if !all_finite {

@@ -111,6 +111,40 @@ fn driving_into_a_wall_is_terminal_not_truncated() {
 }
 
 #[test]
+fn the_collision_term_is_paid_on_the_colliding_step_only() {
+    // The same drive into the east wall, with eq. (1) and with eq. (1) plus `collision`.
+    let drive = |collision: f64| {
+        let mut cfg = noiseless();
+        cfg.reward.collision = collision;
+        let w = world("box", cfg);
+        let mut env = Env::new(Arc::clone(&w), 3);
+        let mut obs = vec![0.0; w.obs_dim()];
+        env.reset_to(Pose { x_m: 11.725, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+        let mut rewards = Vec::new();
+        loop {
+            let o = env.step([1.0, 0.0], &mut obs).unwrap();
+            rewards.push(o.reward);
+            if o.done() {
+                assert!(o.terminal);
+                return (rewards, obs[w.obs_dim() - 1]);
+            }
+        }
+    };
+    let (plain, _) = drive(0.0);
+    let (penalised, last_obs_reward) = drive(-100.0);
+    assert_eq!(plain.len(), 10);
+    assert_eq!(&plain[..9], &penalised[..9], "no term before the collision");
+    assert!((penalised[9] - (plain[9] - 100.0)).abs() < 1e-4, "{} vs {}", penalised[9], plain[9]);
+    assert_eq!(last_obs_reward, penalised[9], "the observation's last reward includes it");
+    // A bonus for colliding is refused.
+    let mut cfg = noiseless();
+    cfg.reward.collision = 1.0;
+    assert!(cfg.validate().unwrap_err().to_string().contains("reward.collision"));
+    cfg.reward.collision = f64::NAN;
+    assert!(cfg.validate().is_err());
+}
+
+#[test]
 fn reaching_max_steps_is_truncated_not_terminal() {
     let mut cfg = noiseless();
     cfg.episode.max_steps = 25;
