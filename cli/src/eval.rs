@@ -29,6 +29,34 @@ pub struct EvalEpisode {
     pub ees: f64,
     pub distance_m: f64,
     pub shaded_time_s: f64,
+    /// Ran to the step limit without a collision but drove less than [`PARKED_SHARE`] of what
+    /// its steps cover at full speed: safe because it stopped, not because it explored.
+    #[serde(default)]
+    pub parked: bool,
+}
+
+/// An episode that ends without a collision is *parked* when it drove less than this share
+/// of `steps × v_max × dt` [ours (issue 18): a third. Driving policies cover 0.57–0.97 of it
+/// on every family of generated worlds (85–145 m in 3,000 steps of at most 150 m); those
+/// that stop in clutter or open ground cover under 0.33 (5–50 m)].
+pub const PARKED_SHARE: f64 = 1.0 / 3.0;
+
+/// Is an episode that ended this way parked ([`PARKED_SHARE`])?
+pub fn is_parked(collided: bool, steps: u32, distance_m: f64, env: &EnvConfig) -> bool {
+    !collided && distance_m < PARKED_SHARE * f64::from(steps) * env.vehicle.v_max_mps * env.vehicle.dt_s
+}
+
+/// One world's rows of an evaluation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapRow {
+    pub map: String,
+    pub episodes: usize,
+    pub mean_steps: f64,
+    pub collisions: u32,
+    pub parked: u32,
+    pub mean_eqs: f64,
+    pub mean_ees: f64,
+    pub mean_distance_m: f64,
 }
 
 /// Episodes and their means.
@@ -44,12 +72,14 @@ pub struct EvalSummary {
     pub mean_distance_m: f64,
     pub mean_shaded_time_s: f64,
     pub collisions: u32,
+    /// Episodes that ran to the limit without a collision by stopping ([`EvalEpisode::parked`]).
+    #[serde(default)]
+    pub parked: u32,
 }
 
 impl EvalSummary {
-    /// Per world (in the order first met): episodes, mean steps, collisions, mean EQS, EES and
-    /// distance.
-    pub fn per_map(&self) -> Vec<(String, usize, f64, u32, f64, f64, f64)> {
+    /// Per world, in the order first met.
+    pub fn per_map(&self) -> Vec<MapRow> {
         let mut rows: Vec<(String, Vec<&EvalEpisode>)> = Vec::new();
         for e in &self.episodes {
             match rows.iter_mut().find(|(m, _)| *m == e.map) {
@@ -61,7 +91,17 @@ impl EvalSummary {
             .map(|(m, v)| {
                 let n = v.len() as f64;
                 let mean = |f: &dyn Fn(&EvalEpisode) -> f64| v.iter().map(|e| f(e)).sum::<f64>() / n;
-                (m, v.len(), mean(&|e| f64::from(e.steps)), v.iter().filter(|e| e.collided).count() as u32, mean(&|e| e.eqs as f64), mean(&|e| e.ees), mean(&|e| e.distance_m))
+                let count = |f: &dyn Fn(&EvalEpisode) -> bool| v.iter().filter(|e| f(e)).count() as u32;
+                MapRow {
+                    episodes: v.len(),
+                    mean_steps: mean(&|e| f64::from(e.steps)),
+                    collisions: count(&|e| e.collided),
+                    parked: count(&|e| e.parked),
+                    mean_eqs: mean(&|e| e.eqs as f64),
+                    mean_ees: mean(&|e| e.ees),
+                    mean_distance_m: mean(&|e| e.distance_m),
+                    map: m,
+                }
             })
             .collect()
     }
@@ -69,7 +109,7 @@ impl EvalSummary {
     /// The means on one line.
     pub fn one_line(&self) -> String {
         format!(
-            "{}: {} episodes, mean steps {:.0}, return {:.1}, EQS {:.1}, EES {:.2}, distance {:.1} m, shaded {:.1} s, collisions {}",
+            "{}: {} episodes, mean steps {:.0}, return {:.1}, EQS {:.1}, EES {:.2}, distance {:.1} m, shaded {:.1} s, collisions {}, parked {}",
             self.map,
             self.episodes.len(),
             self.mean_steps,
@@ -78,7 +118,8 @@ impl EvalSummary {
             self.mean_ees,
             self.mean_distance_m,
             self.mean_shaded_time_s,
-            self.collisions
+            self.collisions,
+            self.parked
         )
     }
 }
@@ -190,6 +231,7 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
             ees: s.ees,
             distance_m: s.distance_m,
             shaded_time_s: s.shaded_time_s,
+            parked: is_parked(s.terminal, s.steps, s.distance_m, &world.cfg),
         });
     }
     let n = out.len() as f64;
@@ -204,6 +246,7 @@ pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, s
         mean_distance_m: mean(&|e| e.distance_m),
         mean_shaded_time_s: mean(&|e| e.shaded_time_s),
         collisions: out.iter().filter(|e| e.collided).count() as u32,
+        parked: out.iter().filter(|e| e.parked).count() as u32,
         episodes: out,
     };
     if let Some(d) = out_dir {
@@ -250,6 +293,7 @@ mod tests {
             ees: 1.0,
             distance_m: 5.0,
             shaded_time_s: 0.0,
+            parked: !collided && k == 3,
         };
         let s = EvalSummary {
             map: "a+b".into(),
@@ -262,8 +306,23 @@ mod tests {
             mean_distance_m: 0.0,
             mean_shaded_time_s: 0.0,
             collisions: 1,
+            parked: 1,
         };
         let rows = s.per_map();
-        assert_eq!(rows.iter().map(|r| (r.0.as_str(), r.1, r.2, r.3, r.4)).collect::<Vec<_>>(), [("b", 2, 200.0, 1, 20.0), ("a", 1, 300.0, 0, 20.0)]);
+        assert_eq!(rows.iter().map(|r| (r.map.as_str(), r.episodes, r.mean_steps, r.collisions, r.parked, r.mean_eqs)).collect::<Vec<_>>(), [("b", 2, 200.0, 1, 1, 20.0), ("a", 1, 300.0, 0, 0, 20.0)]);
+    }
+
+    #[test]
+    fn an_episode_is_parked_when_it_survives_by_stopping() {
+        // The default car: 0.5 m/s × 0.1 s, so 3,000 steps reach at most 150 m; a third is 50 m.
+        let env = EnvConfig::default();
+        assert!(is_parked(false, 3000, 49.9, &env));
+        assert!(!is_parked(false, 3000, 50.1, &env));
+        assert!(!is_parked(true, 3000, 5.0, &env), "a collision is a collision, not parking");
+        // Scaled by the steps it ran: 300 steps at 10 m is not parked.
+        assert!(!is_parked(false, 300, 10.0, &env));
+        // Older eval.json files (without the field) still read.
+        let old = r#"{"episode":1,"map":"env3","steps":3000,"return":1.0,"collided":false,"eqs":3,"ees":0.1,"distance_m":4.0,"shaded_time_s":0.0}"#;
+        assert!(!serde_json::from_str::<EvalEpisode>(old).unwrap().parked);
     }
 }

@@ -475,15 +475,24 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
                 e.ees,
                 e.distance_m,
                 e.shaded_time_s,
-                if e.collided { "  collision" } else { "" }
+                if e.collided {
+                    "  collision"
+                } else if e.parked {
+                    "  parked"
+                } else {
+                    ""
+                }
             );
         }
-        println!("mean {:>6.0} {:>9.1} {:>5.1} {:>6.2} {:>9.1} {:>8.1}  ({} collisions)", s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.mean_shaded_time_s, s.collisions);
+        println!(
+            "mean {:>6.0} {:>9.1} {:>5.1} {:>6.2} {:>9.1} {:>8.1}  ({} collisions, {} parked: no collision, under a third of full speed's distance)",
+            s.mean_steps, s.mean_return, s.mean_eqs, s.mean_ees, s.mean_distance_m, s.mean_shaded_time_s, s.collisions, s.parked
+        );
         let per_map = s.per_map();
         if per_map.len() > 1 {
-            println!("\n{:<24} {:>4} {:>6} {:>10} {:>6} {:>5} {:>7}", "map", "eps", "steps", "collisions", "EQS", "EES", "dist m");
-            for (m, n, steps, coll, eqs, ees, dist) in &per_map {
-                println!("{m:<24} {n:>4} {steps:>6.0} {coll:>10} {eqs:>6.1} {ees:>5.2} {dist:>7.1}");
+            println!("\n{:<24} {:>4} {:>6} {:>10} {:>6} {:>6} {:>5} {:>7}", "map", "eps", "steps", "collisions", "parked", "EQS", "EES", "dist m");
+            for r in &per_map {
+                println!("{:<24} {:>4} {:>6.0} {:>10} {:>6} {:>6.1} {:>5.2} {:>7.1}", r.map, r.episodes, r.mean_steps, r.collisions, r.parked, r.mean_eqs, r.mean_ees, r.mean_distance_m);
             }
         }
         println!("pictures (episode-K.png, sheet.png) and eval.json in {}", out.display());

@@ -449,6 +449,7 @@ mod tests {
             mean_distance_m: 49.0,
             mean_shaded_time_s: 0.0,
             collisions: 0,
+            parked: 0,
         };
         append_eval(dir.path(), 10.0, "progress", &s).unwrap();
         let p = dir.path().join("evals.csv");

@@ -206,6 +206,7 @@ mod tests {
             mean_distance_m: 49.0,
             mean_shaded_time_s: 0.0,
             collisions,
+            parked: 0,
         }
     }
 
