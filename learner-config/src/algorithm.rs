@@ -108,6 +108,16 @@ pub struct LearnerConfig {
     /// Purely a speed choice, for all three algorithms; see docs/learner.md for what it gave
     /// [inferred: true]. CUDA always uses autograd.
     pub fused_update: bool,
+    /// Normalise each critic hidden layer's pre-activations per sample (layer normalisation
+    /// without a learned gain or bias: zero mean, unit variance over the layer's units, ε
+    /// 1e-5) before its ReLU. Beyond the paper, off in every paper preset [paper §II-B: plain
+    /// ReLU layers]. Its reason: the critics' loss and Q grow through every `explore-sac` run
+    /// and two runs with larger scans diverged (docs/cluster.md); normalised critic features
+    /// are the standard cure for that growth (Ball et al. 2023, RLPD; Yue et al. 2023,
+    /// "Understanding, predicting and better resolving Q-value divergence"). Without a gain or
+    /// bias the parameters, checkpoints' layout and the published actor are unchanged; only
+    /// the critics (all algorithms, both update paths) compute differently.
+    pub critic_layer_norm: bool,
     /// DDPG's own settings.
     pub ddpg: DdpgConfig,
     /// TD3's own settings.
@@ -132,6 +142,7 @@ impl Default for LearnerConfig {
             adam: AdamConfig::default(),
             fused_critics: true,
             fused_update: true,
+            critic_layer_norm: false,
             ddpg: DdpgConfig::default(),
             td3: Td3Config::default(),
             sac: SacConfig::default(),

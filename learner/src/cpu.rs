@@ -75,6 +75,9 @@ pub struct Body {
     dims: [(usize, usize); 3],
     /// `[out, in]` (PyTorch, the actor) rather than `[in, out]` (the critic stacks).
     out_major: bool,
+    /// Layer normalisation (no gain or bias) of both hidden layers' pre-activations, before
+    /// the ReLU, as [`crate::nets::stacked_mlp_forward`]'s `norm`.
+    norm: bool,
 }
 
 impl Body {
@@ -89,7 +92,7 @@ impl Body {
             off[l].1 = at + j * o;
             at += k * o;
         }
-        Self { off, dims, out_major: false }
+        Self { off, dims, out_major: false, norm: false }
     }
 
     /// A [`crate::nets::mlp_specs`] network.
@@ -101,7 +104,13 @@ impl Body {
             off[l] = (at, at + i * o);
             at += i * o + o;
         }
-        Self { off, dims, out_major: true }
+        Self { off, dims, out_major: true, norm: false }
+    }
+
+    /// The same network with its hidden layers layer-normalised when `norm`.
+    pub fn normed(mut self, norm: bool) -> Self {
+        self.norm = norm;
+        self
     }
 
     pub fn hidden(&self) -> usize {
@@ -125,9 +134,16 @@ impl Body {
     /// Forward pass over `rows` rows of `x` (`[rows, input]`), keeping the activations.
     pub fn forward(&self, p: &[f32], x: &[f32], rows: usize, act: &mut Acts) {
         act.resize(rows, self);
+        let h = self.hidden();
         self.layer(0, p, x, rows, &mut act.h1);
+        if self.norm {
+            layer_norm(&mut act.h1, &mut act.n1, &mut act.r1, h);
+        }
         relu(&mut act.h1);
         self.layer(1, p, &act.h1, rows, &mut act.h2);
+        if self.norm {
+            layer_norm(&mut act.h2, &mut act.n2, &mut act.r2, h);
+        }
         relu(&mut act.h2);
         self.layer(2, p, &act.h2, rows, &mut act.y);
     }
@@ -150,6 +166,9 @@ impl Body {
         self.weight_grads(2, &act.h2, dy, rows, grad.as_deref_mut());
         self.input_grad(2, p, dy, rows, &mut scratch.d2, 0);
         mask(&mut scratch.d2, &act.h2);
+        if self.norm {
+            layer_norm_backward(&mut scratch.d2, &act.n2, &act.r2, h);
+        }
         let (d2, d1) = (&scratch.d2, &mut scratch.d1);
         match grad.as_deref_mut() {
             Some(g) => {
@@ -158,6 +177,9 @@ impl Body {
             None => self.input_grad(1, p, d2, rows, d1, 0),
         }
         mask(&mut scratch.d1, &act.h1);
+        if self.norm {
+            layer_norm_backward(&mut scratch.d1, &act.n1, &act.r1, h);
+        }
         self.weight_grads(0, x, &scratch.d1, rows, grad);
         if let Some((dx, from)) = dx {
             self.input_grad(0, p, &scratch.d1, rows, dx, from);
@@ -190,13 +212,19 @@ impl Body {
     }
 }
 
-/// Activations of one forward pass: `h1`, `h2` after ReLU, the output `y`.
+/// Activations of one forward pass: `h1`, `h2` after ReLU, the output `y`; with layer
+/// normalisation also the normalised pre-activations `n1`, `n2` and each row's 1/σ `r1`, `r2`
+/// (empty without it).
 #[derive(Debug, Default)]
 pub struct Acts {
     pub rows: usize,
     pub h1: Vec<f32>,
     pub h2: Vec<f32>,
     pub y: Vec<f32>,
+    pub n1: Vec<f32>,
+    pub n2: Vec<f32>,
+    pub r1: Vec<f32>,
+    pub r2: Vec<f32>,
 }
 
 impl Acts {
@@ -205,6 +233,43 @@ impl Acts {
         self.h1.resize(rows * body.hidden(), 0.0);
         self.h2.resize(rows * body.hidden(), 0.0);
         self.y.resize(rows * body.output(), 0.0);
+        let (normed, per_row) = if body.norm { (rows * body.hidden(), rows) } else { (0, 0) };
+        for v in [&mut self.n1, &mut self.n2] {
+            v.resize(normed, 0.0);
+        }
+        for v in [&mut self.r1, &mut self.r2] {
+            v.resize(per_row, 0.0);
+        }
+    }
+}
+
+/// Layer normalisation without gain or bias, row by row over `width` units, in place on `z`:
+/// z ← (z − mean)/σ, σ = √(biased variance + ε) ([`crate::nets::LAYER_NORM_EPS`]). The result
+/// is also kept in `n` and each row's 1/σ in `rstd`, for [`layer_norm_backward`]. Sums are
+/// taken in f64, so a row of large pre-activations loses nothing to cancellation.
+fn layer_norm(z: &mut [f32], n: &mut [f32], rstd: &mut [f32], width: usize) {
+    let eps = crate::nets::LAYER_NORM_EPS;
+    for ((row, out), r) in z.chunks_exact_mut(width).zip(n.chunks_exact_mut(width)).zip(rstd.iter_mut()) {
+        let mean = row.iter().map(|&v| f64::from(v)).sum::<f64>() / width as f64;
+        let var = row.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / width as f64;
+        let inv = 1.0 / (var + eps).sqrt();
+        for (v, o) in row.iter_mut().zip(out.iter_mut()) {
+            *v = ((f64::from(*v) - mean) * inv) as f32;
+            *o = *v;
+        }
+        *r = inv as f32;
+    }
+}
+
+/// [`layer_norm`]'s backward, in place on `d` (∂L/∂n in, ∂L/∂z out), row by row:
+/// ∂L/∂z = (1/σ)·(∂L/∂n − mean(∂L/∂n) − n·mean(∂L/∂n ⊙ n)).
+fn layer_norm_backward(d: &mut [f32], n: &[f32], rstd: &[f32], width: usize) {
+    for ((row, nr), &r) in d.chunks_exact_mut(width).zip(n.chunks_exact(width)).zip(rstd) {
+        let mean_d = row.iter().map(|&v| f64::from(v)).sum::<f64>() / width as f64;
+        let mean_dn = row.iter().zip(nr).map(|(&v, &x)| f64::from(v) * f64::from(x)).sum::<f64>() / width as f64;
+        for (v, &x) in row.iter_mut().zip(nr) {
+            *v = (f64::from(r) * (f64::from(*v) - mean_d - f64::from(x) * mean_dn)) as f32;
+        }
     }
 }
 
@@ -441,10 +506,13 @@ mod tests {
         // The second network of a two-network critic stack.
         let stack = ParamSet::new(stacked_mlp_specs("c", 2, input as i64, hidden as i64, 1, &mut rng), tch::Device::Cpu).unwrap();
         let second = Body::stacked(1, 2, input, hidden, 1);
-        for ((set, body, pick), lanes) in [(&set, body, None), (&stack, second, Some(1i64))].into_iter().flat_map(|case| [(case, Lanes::default()), (case, Lanes::started())]) {
+        // The same, layer-normalised (`critic_layer_norm`).
+        let normed = second.normed(true);
+        let cases = [(&set, body, None), (&stack, second, Some(1i64)), (&stack, normed, Some(1i64))];
+        for ((set, body, pick), lanes) in cases.into_iter().flat_map(|case| [(case, Lanes::default()), (case, Lanes::started())]) {
             let y = match pick {
                 None => mlp_forward(set.params(), &x),
-                Some(j) => stacked_mlp_forward(set.params(), &x, true).get(j),
+                Some(j) => stacked_mlp_forward(set.params(), &x, true, body.norm).get(j),
             };
             let o = body.output();
             let dy = dy_of(o);

@@ -392,30 +392,40 @@ pub fn mlp_forward(p: &[Tensor], x: &Tensor) -> Tensor {
     h.linear(&p[4], Some(&p[5]))
 }
 
+/// ε of the critics' layer normalisation ([`stacked_mlp_forward`]'s `norm`), PyTorch's
+/// `nn.LayerNorm` default.
+pub const LAYER_NORM_EPS: f64 = 1e-5;
+
 /// Forward pass of a [`stacked_mlp_specs`] stack of `k` networks on the same input:
 /// `[B, input] → [k, B, output]`.
 ///
 /// `fused`: each layer is one `baddbmm` over all `k` networks (3 matmul launches in all);
 /// otherwise each network runs on its own (`3k` `addmm` launches, then a `stack`). Same
 /// parameters and the same result up to float rounding.
-pub fn stacked_mlp_forward(p: &[Tensor], x: &Tensor, fused: bool) -> Tensor {
+///
+/// `norm`: each hidden layer's pre-activations are normalised per sample over the layer's
+/// units (layer normalisation without gain or bias, ε [`LAYER_NORM_EPS`]) before the ReLU
+/// (`LearnerConfig::critic_layer_norm`).
+pub fn stacked_mlp_forward(p: &[Tensor], x: &Tensor, fused: bool, norm: bool) -> Tensor {
     let k = p[0].size()[0];
+    let hidden = p[0].size()[2];
+    let act = |h: Tensor| {
+        let mut h = if norm { h.layer_norm([hidden], None::<Tensor>, None::<Tensor>, LAYER_NORM_EPS, false) } else { h };
+        let _ = h.relu_();
+        h
+    };
     if fused {
         let size = x.size();
         let xs = x.unsqueeze(0).expand([k, size[0], size[1]], false);
-        let mut h = p[1].baddbmm(&xs, &p[0], 1.0, 1.0);
-        let _ = h.relu_();
-        let mut h = p[3].baddbmm(&h, &p[2], 1.0, 1.0);
-        let _ = h.relu_();
+        let h = act(p[1].baddbmm(&xs, &p[0], 1.0, 1.0));
+        let h = act(p[3].baddbmm(&h, &p[2], 1.0, 1.0));
         p[5].baddbmm(&h, &p[4], 1.0, 1.0)
     } else {
         let outs: Vec<Tensor> = (0..k)
             .map(|j| {
                 let layer = |i: usize, h: &Tensor| p[i + 1].get(j).addmm(h, &p[i].get(j));
-                let mut h = layer(0, x);
-                let _ = h.relu_();
-                let mut h = layer(2, &h);
-                let _ = h.relu_();
+                let h = act(layer(0, x));
+                let h = act(layer(2, &h));
                 layer(4, &h)
             })
             .collect();
@@ -464,9 +474,13 @@ mod param_tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(2);
         let set = ParamSet::new(stacked_mlp_specs("critic", 2, 5, 8, 1, &mut rng), tch::Device::Cpu).unwrap();
         let x = Tensor::from_slice(&(0..15).map(|i| i as f32 / 7.0 - 1.0).collect::<Vec<_>>()).view([3, 5]);
-        let a = stacked_mlp_forward(set.params(), &x, true);
-        let b = stacked_mlp_forward(set.params(), &x, false);
-        assert_eq!(a.size(), vec![2, 3, 1]);
-        assert!(a.allclose(&b, 1e-6, 1e-6, false));
+        for norm in [false, true] {
+            let a = stacked_mlp_forward(set.params(), &x, true, norm);
+            let b = stacked_mlp_forward(set.params(), &x, false, norm);
+            assert_eq!(a.size(), vec![2, 3, 1]);
+            assert!(a.allclose(&b, 1e-6, 1e-6, false));
+        }
+        // Normalisation changes the result (so the flag is not ignored).
+        assert!(!stacked_mlp_forward(set.params(), &x, true, true).allclose(&stacked_mlp_forward(set.params(), &x, true, false), 1e-4, 1e-4, false));
     }
 }

@@ -66,7 +66,7 @@ impl Ddpg {
     pub fn td_target(&self, b: &Minibatch) -> Tensor {
         let _guard = tch::no_grad_guard();
         let next_action = mlp_forward(self.target_actor.params(), &b.next_obs).tanh();
-        let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, self.c.cfg.fused_critics).get(0);
+        let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, &self.c.cfg).get(0);
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * q_next * self.c.cfg.gamma
     }
@@ -80,7 +80,7 @@ impl Ddpg {
         // Eqs. 3–5: descend −mean Q(s, π(s)) in θ only (the critic through its frozen views:
         // ∂Q/∂a flows, no critic weight gradient is computed).
         let action = mlp_forward(self.actor.net.params(), &b.obs).tanh();
-        let q = critics(self.critic.net.frozen(), &b.obs, &action, self.c.cfg.fused_critics);
+        let q = critics(self.critic.net.frozen(), &b.obs, &action, &self.c.cfg);
         let actor_loss = -q.mean(None);
         let actor_loss_value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
         let actor_norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;

@@ -528,10 +528,11 @@ pub(crate) fn deterministic_act(actor: &ParamSet, obs: &Tensor, explore: bool, c
 /// Q-values of a stack of critics: `[K, B, 1]` for observations `[B, obs]` and actions
 /// `[B, act]` (the critic's input is their concatenation, paper §II-B). `params` are a
 /// critic [`ParamSet`]'s [`ParamSet::params`], or its [`ParamSet::frozen`] views where only
-/// the action's gradient is wanted (the actor's loss).
-pub(crate) fn critics(params: &[Tensor], obs: &Tensor, action: &Tensor, fused: bool) -> Tensor {
+/// the action's gradient is wanted (the actor's loss). `cfg` gives the stack's evaluation
+/// (`fused_critics`) and its layer normalisation (`critic_layer_norm`).
+pub(crate) fn critics(params: &[Tensor], obs: &Tensor, action: &Tensor, cfg: &LearnerConfig) -> Tensor {
     let x = Tensor::cat(&[obs, action], 1);
-    stacked_mlp_forward(params, &x, fused)
+    stacked_mlp_forward(params, &x, cfg.fused_critics, cfg.critic_layer_norm)
 }
 
 /// What a critic step reports.
@@ -551,7 +552,7 @@ pub(crate) struct CriticStep {
 ///
 /// `y` is `[B, 1]` and carries no gradient. Checks the loss is finite before stepping.
 pub(crate) fn critic_step(critic: &mut Trained, b: &Minibatch, y: &Tensor, c: &Common) -> Result<CriticStep, LearnerError> {
-    let q = critics(critic.net.params(), &b.obs, &b.action, c.cfg.fused_critics); // [K, B, 1]
+    let q = critics(critic.net.params(), &b.obs, &b.action, &c.cfg); // [K, B, 1]
     let td = &q - y; // broadcast over K
     let loss = (td.square() * &b.weights).sum(None) / b.rows() as f64;
     let loss_value = loss.double_value(&[]);

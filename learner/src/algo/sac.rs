@@ -175,7 +175,7 @@ impl Sac {
     fn td_target_with_alpha(&self, b: &Minibatch, eps: &Tensor, alpha: f64) -> Tensor {
         let _guard = tch::no_grad_guard();
         let next = self.sample_with(&b.next_obs, eps);
-        let q_next = critics(self.target_critic.params(), &b.next_obs, &next.action, self.c.cfg.fused_critics).amin(0, false);
+        let q_next = critics(self.target_critic.params(), &b.next_obs, &next.action, &self.c.cfg).amin(0, false);
         let soft_value = q_next - next.log_prob * alpha;
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * soft_value * self.c.cfg.gamma
@@ -204,7 +204,7 @@ impl Sac {
         // Eq. 11 with the updated critics, minimised in θ only: the critics run on their
         // frozen views, so the backward pass computes ∂Q/∂a but no critic weight gradient.
         let now = self.sample_with(&b.obs, &eps_now);
-        let q = critics(self.critic.net.frozen(), &b.obs, &now.action, self.c.cfg.fused_critics).amin(0, false);
+        let q = critics(self.critic.net.frozen(), &b.obs, &now.action, &self.c.cfg).amin(0, false);
         let actor_loss = (&now.log_prob * alpha - q).mean(None);
         let actor_loss_value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
         let actor_norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;

@@ -84,7 +84,7 @@ impl Td3 {
     pub fn td_target(&self, b: &Minibatch, eps: &Tensor) -> Tensor {
         let _guard = tch::no_grad_guard();
         let next_action = (mlp_forward(self.target_actor.params(), &b.next_obs).tanh() + eps).clamp(-1.0, 1.0);
-        let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, self.c.cfg.fused_critics).amin(0, false);
+        let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, &self.c.cfg).amin(0, false);
         let not_done = b.terminal.ones_like() - &b.terminal;
         &b.reward + not_done * q_next * self.c.cfg.gamma
     }
@@ -103,7 +103,7 @@ impl Td3 {
             // Eqs. 3, 5, 8: descend −mean min_k Q_k(s, π(s)) in θ only (critics through their
             // frozen views: ∂Q/∂a flows, no critic weight gradient is computed).
             let action = mlp_forward(self.actor.net.params(), &b.obs).tanh();
-            let q = critics(self.critic.net.frozen(), &b.obs, &action, self.c.cfg.fused_critics).amin(0, false);
+            let q = critics(self.critic.net.frozen(), &b.obs, &action, &self.c.cfg).amin(0, false);
             let actor_loss = -q.mean(None);
             let value = finite(&actor_loss, metric::ACTOR_LOSS, &self.c)?;
             let norm = self.actor.step(&actor_loss, self.c.cfg.grad_clip_norm)?;

@@ -91,6 +91,9 @@ struct BenchArgs {
     /// with the default fused CPU update.
     #[arg(long)]
     autograd: bool,
+    /// Measure with layer-normalised critics (`critic_layer_norm`).
+    #[arg(long)]
+    critic_layer_norm: bool,
     /// One JSON object per line: {"bench", "config", "value", "unit"}.
     #[arg(long)]
     json: bool,
@@ -314,7 +317,7 @@ fn run(config_path: &Path) -> Result<()> {
 /// `mapless-learner bench`: updates per second, and the matrix-product ceiling they are held
 /// against (`mapless_learner::ceiling`).
 fn bench(a: &BenchArgs) -> Result<()> {
-    let BenchArgs { seconds, ref device, ref threads, ref algos, unfused, autograd, json, batch_size, hidden_width } = *a;
+    let BenchArgs { seconds, ref device, ref threads, ref algos, unfused, autograd, critic_layer_norm, json, batch_size, hidden_width } = *a;
     let defaults = LearnerConfig::default();
     let (batch_size, hidden_width) = (batch_size.unwrap_or(defaults.batch_size), hidden_width.unwrap_or(defaults.hidden_width));
     if batch_size == 0 || hidden_width < 1 {
@@ -363,12 +366,12 @@ fn bench(a: &BenchArgs) -> Result<()> {
                 variants.push((false, false));
             }
             for (fused_update, fused) in variants {
-                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, batch_size, hidden_width, ..LearnerConfig::default() };
+                let cfg = LearnerConfig { algorithm: kind, device: device.to_owned(), fused_critics: fused, fused_update, critic_layer_norm, batch_size, hidden_width, ..LearnerConfig::default() };
                 // libtorch fixes the inter-op pool once per process; only the intra-op count varies.
                 let v = bench_updates(&cfg, obs_dim, act_dim, TorchThreads { intra_op: t, inter_op: 1 }, seconds)?;
                 // The fused update runs on the CPU only; elsewhere the autograd path runs.
                 let path = if fused_update && dev == Device::Cpu { "fused" } else { "autograd" };
-                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "update": path, "fused_critics": fused && kind != AlgorithmKind::Ddpg});
+                let config = serde_json::json!({"algo": kind.as_str(), "device": device, "threads": t, "obs_dim": obs_dim, "act_dim": act_dim, "hidden": cfg.hidden_width, "batch": cfg.batch_size, "update": path, "fused_critics": fused && kind != AlgorithmKind::Ddpg, "critic_layer_norm": critic_layer_norm});
                 bench_report(json, "learner.updates_per_s", config, v, "updates/s");
                 if fused_update {
                     // Matrix-product work per update, and the updates/s that f32 products alone

@@ -12,7 +12,7 @@ impl Ddpg {
         let (rows, o, na, h) = (b.rows, self.c.obs_dim, self.c.act_dim, self.c.hidden() as usize);
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, na);
-        let bodies = critic_bodies(1, o, na, h);
+        let bodies = critic_bodies(1, o, na, h, self.c.cfg.critic_layer_norm);
         let w = &mut self.host;
         let _blas = w.begin();
 

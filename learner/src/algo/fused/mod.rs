@@ -95,10 +95,18 @@ impl MinRows {
             body.backward(p, &[], full, dq, None, Some((&mut self.dx, obs)), &mut self.scratch, &Lanes::ONE);
         } else {
             self.sub.rows = n;
-            for (buf, src) in [(&mut self.sub.h1, &full.h1), (&mut self.sub.h2, &full.h2)] {
+            for (buf, src) in [(&mut self.sub.h1, &full.h1), (&mut self.sub.h2, &full.h2), (&mut self.sub.n1, &full.n1), (&mut self.sub.n2, &full.n2)] {
                 buf.clear();
-                for &i in &self.sel {
-                    buf.extend_from_slice(&src[i * hidden..(i + 1) * hidden]);
+                if !src.is_empty() {
+                    for &i in &self.sel {
+                        buf.extend_from_slice(&src[i * hidden..(i + 1) * hidden]);
+                    }
+                }
+            }
+            for (buf, src) in [(&mut self.sub.r1, &full.r1), (&mut self.sub.r2, &full.r2)] {
+                buf.clear();
+                if !src.is_empty() {
+                    buf.extend(self.sel.iter().map(|&i| src[i]));
                 }
             }
             self.dq.clear();
@@ -108,9 +116,10 @@ impl MinRows {
     }
 }
 
-/// The `k` critics of a [`crate::nets::stacked_mlp_specs`] stack on `obs + act` inputs.
-fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize) -> Vec<Body> {
-    (0..k).map(|j| Body::stacked(j, k, obs + act, hidden, 1)).collect()
+/// The `k` critics of a [`crate::nets::stacked_mlp_specs`] stack on `obs + act` inputs,
+/// layer-normalised when `norm` (`LearnerConfig::critic_layer_norm`).
+fn critic_bodies(k: usize, obs: usize, act: usize, hidden: usize, norm: bool) -> Vec<Body> {
+    (0..k).map(|j| Body::stacked(j, k, obs + act, hidden, 1).normed(norm)).collect()
 }
 
 impl Work {

@@ -80,7 +80,7 @@ impl Sac {
         let (lo, hi) = (self.c.cfg.sac.log_std_min, self.c.cfg.sac.log_std_max);
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, 2 * na);
-        let bodies = critic_bodies(CRITICS as usize, o, na, h);
+        let bodies = critic_bodies(CRITICS as usize, o, na, h, self.c.cfg.critic_layer_norm);
         let (w, head) = (&mut self.host.0, &mut self.host.1);
         let _blas = w.begin();
 

@@ -14,7 +14,7 @@ impl Td3 {
         let (std, limit) = (self.c.cfg.td3.target_noise_std as f32, self.c.cfg.td3.target_noise_clip as f32);
         let clip = self.c.cfg.grad_clip_norm;
         let actor_body = Body::single(o, h, na);
-        let bodies = critic_bodies(CRITICS as usize, o, na, h);
+        let bodies = critic_bodies(CRITICS as usize, o, na, h, self.c.cfg.critic_layer_norm);
         let mut z = std::mem::take(&mut self.host.noise);
         self.smoothing_draws(rows, &mut z);
         let w = &mut self.host;
