@@ -69,6 +69,11 @@ pub struct CardEval {
     pub check: bool,
     pub mean_steps: f64,
     pub collisions: u32,
+    /// Episodes that ran to the limit without a collision by stopping
+    /// ([`crate::eval::PARKED_SHARE`]); `None` on a card written before it was counted
+    /// (`mapless policies update` fills it in).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parked: Option<u32>,
     pub mean_eqs: f64,
     pub mean_ees: f64,
     pub mean_distance_m: f64,
@@ -84,6 +89,7 @@ impl CardEval {
             check,
             mean_steps: s.mean_steps,
             collisions: s.collisions,
+            parked: Some(s.parked),
             mean_eqs: s.mean_eqs,
             mean_ees: s.mean_ees,
             mean_distance_m: s.mean_distance_m,
@@ -106,6 +112,12 @@ impl CardEval {
         }
         if self.collisions != now.collisions {
             d.push(format!("collisions {} recorded, {} now", self.collisions, now.collisions));
+        }
+        // A card written before parked episodes were counted has nothing to hold.
+        if let (Some(was), Some(is)) = (self.parked, now.parked)
+            && was != is
+        {
+            d.push(format!("parked {was} recorded, {is} now"));
         }
         d
     }
@@ -259,18 +271,23 @@ pub fn card_markdown(c: &Card) -> String {
         s,
         "Deterministic policy, random starts (seed {CARD_SEED}), an episode ends in a collision or at the step limit. EQS/EES as docs/simulator.md reads them. Rows marked *check* are rerun by `mapless policies check` and the test suite, which require the same figures.\n"
     );
-    let _ = writeln!(s, "| map | episodes × step limit | mean steps | collisions | EQS | EES | distance (m) |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        s,
+        "*Parked*: episodes that ran to the limit without a collision because the car stopped (it drove under a third of what its steps cover at full speed; docs/cluster.md, \"Safe, or parked?\").\n"
+    );
+    let _ = writeln!(s, "| map | episodes × step limit | mean steps | collisions | parked | EQS | EES | distance (m) |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|");
     for e in &c.evaluations {
         let _ = writeln!(
             s,
-            "| {}{} | {} × {} | {:.0} | {} | {:.1} | {:.2} | {:.1} |",
+            "| {}{} | {} × {} | {:.0} | {} | {} | {:.1} | {:.2} | {:.1} |",
             e.map,
             if e.check { " (check)" } else { "" },
             e.episodes,
             e.max_steps,
             e.mean_steps,
             e.collisions,
+            e.parked.map_or("–".to_owned(), |p| p.to_string()),
             e.mean_eqs,
             e.mean_ees,
             e.mean_distance_m
@@ -286,8 +303,10 @@ pub fn write_index(dir: &Path) -> Result<()> {
     let mut s = String::from(
         "# Shipped policies\n\nWritten by `mapless policies ship` from the cards below; `mapless policies list` prints the same. Try one: `mapless eval --policy NAME --map env3 --max-steps 3000`, `mapless rollout --policy NAME --map env1`. `mapless policies check` (run by the test suite) reruns each card's short evaluations and fails if a figure changed.\n\n",
     );
-    s.push_str("| policy | algorithm | trained on | training | on its training map: steps, collisions, EQS, EES | env3 (3,000 steps): steps, collisions, EQS, EES |\n|---|---|---|---|---|---|\n");
-    let fmt = |e: Option<&CardEval>| e.map_or("–".to_owned(), |e| format!("{:.0}, {}/{}, {:.1}, {:.2}", e.mean_steps, e.collisions, e.episodes, e.mean_eqs, e.mean_ees));
+    s.push_str("| policy | algorithm | trained on | training | on its training map: steps, collisions, parked, EQS, EES | env3 (3,000 steps): steps, collisions, parked, EQS, EES |\n|---|---|---|---|---|---|\n");
+    let fmt = |e: Option<&CardEval>| {
+        e.map_or("–".to_owned(), |e| format!("{:.0}, {}/{}, {}, {:.1}, {:.2}", e.mean_steps, e.collisions, e.episodes, e.parked.map_or("–".to_owned(), |p| p.to_string()), e.mean_eqs, e.mean_ees))
+    };
     for c in &cards {
         let own = c.evaluations.iter().find(|e| e.map == c.trained_on && !e.check);
         let env3 = c.evaluations.iter().find(|e| e.map == "env3" && !e.check);
@@ -350,14 +369,35 @@ mod tests {
 
     #[test]
     fn a_changed_figure_is_a_difference_and_the_same_figures_are_none() {
-        let a = CardEval { map: "env3".into(), episodes: 3, max_steps: 1000, seed: 7, check: true, mean_steps: 812.0, collisions: 1, mean_eqs: 90.5, mean_ees: 2.1, mean_distance_m: 40.0 };
+        let a = CardEval {
+            map: "env3".into(),
+            episodes: 3,
+            max_steps: 1000,
+            seed: 7,
+            check: true,
+            mean_steps: 812.0,
+            collisions: 1,
+            parked: Some(1),
+            mean_eqs: 90.5,
+            mean_ees: 2.1,
+            mean_distance_m: 40.0,
+        };
         assert!(a.differences(&a.clone()).is_empty());
         let mut b = a.clone();
         b.collisions = 2;
+        b.parked = Some(0);
         b.mean_eqs = 91.0;
         let d = a.differences(&b);
-        assert_eq!(d.len(), 2, "{d:?}");
+        assert_eq!(d.len(), 3, "{d:?}");
         assert!(d.iter().any(|x| x.contains("collisions 1 recorded, 2 now")));
+        assert!(d.iter().any(|x| x.contains("parked 1 recorded, 0 now")));
+        // An older card, without the count, still holds on its other figures.
+        let old = CardEval { parked: None, ..a.clone() };
+        assert!(old.differences(&a).is_empty());
+        let old: CardEval =
+            serde_json::from_str(r#"{"map":"env3","episodes":3,"max_steps":1000,"seed":7,"check":true,"mean_steps":812.0,"collisions":1,"mean_eqs":90.5,"mean_ees":2.1,"mean_distance_m":40.0}"#)
+                .unwrap();
+        assert_eq!(old.parked, None);
     }
 
     #[test]
