@@ -243,13 +243,17 @@ impl Acts {
     }
 }
 
+/// ε of the critics' layer normalisation (here and in [`crate::nets::stacked_mlp_forward`]'s
+/// `norm`), PyTorch's `nn.LayerNorm` default.
+pub const LAYER_NORM_EPS: f64 = 1e-5;
+
 /// Layer normalisation without gain or bias, row by row over `width` units, in place on `z`:
-/// z ← (z − mean)/σ, σ = √(biased variance + ε) ([`crate::nets::LAYER_NORM_EPS`]), the
+/// z ← (z − mean)/σ, σ = √(biased variance + ε) ([`LAYER_NORM_EPS`]), the
 /// variance of the centred values (two passes). The result is also kept in `n` and each row's
 /// 1/σ in `rstd`, for [`layer_norm_backward`]. f32 throughout, with the sums split over 8
 /// lanes so that they vectorise.
 fn layer_norm(z: &mut [f32], n: &mut [f32], rstd: &mut [f32], width: usize) {
-    let eps = crate::nets::LAYER_NORM_EPS as f32;
+    let eps = LAYER_NORM_EPS as f32;
     let w = width as f32;
     for ((row, out), r) in z.chunks_exact_mut(width).zip(n.chunks_exact_mut(width)).zip(rstd.iter_mut()) {
         let mean = lane_sum(row, |v| v) / w;

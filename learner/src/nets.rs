@@ -19,6 +19,7 @@
 use tch::{Tensor, nn};
 
 use crate::LearnerError;
+use crate::cpu::LAYER_NORM_EPS;
 
 pub use mapless_learner_config::DEFAULT_HIDDEN_WIDTH;
 
@@ -391,10 +392,6 @@ pub fn mlp_forward(p: &[Tensor], x: &Tensor) -> Tensor {
     let _ = h.relu_();
     h.linear(&p[4], Some(&p[5]))
 }
-
-/// ε of the critics' layer normalisation ([`stacked_mlp_forward`]'s `norm`), PyTorch's
-/// `nn.LayerNorm` default.
-pub const LAYER_NORM_EPS: f64 = 1e-5;
 
 /// Forward pass of a [`stacked_mlp_specs`] stack of `k` networks on the same input:
 /// `[B, input] → [k, B, output]`.
