@@ -168,6 +168,14 @@ fn other_algorithms_dimensions_and_format_versions_are_mismatches() {
     let e = checkpoint::restore(&mut bigger, &path).unwrap_err();
     assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "hidden_width"), "{e}");
 
+    // Same tensors, different critics: resuming would silently change what they compute.
+    let mut c = cfg(AlgorithmKind::Sac);
+    c.critic_layer_norm = true;
+    let mut normed = Agent::new(&c, 5, 2).unwrap();
+    let e = checkpoint::restore(&mut normed, &path).unwrap_err();
+    assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "critic_layer_norm"), "{e}");
+    assert!(e.to_string().contains("critic_layer_norm is false, expected true"), "{e}");
+
     let manifest = path.join(MANIFEST);
     let text = fs::read_to_string(&manifest).unwrap().replace("\"format_version\": 1", "\"format_version\": 2");
     fs::write(&manifest, text).unwrap();

@@ -96,6 +96,11 @@ impl CardEval {
         }
     }
 
+    /// The parked count as a table cell ("–" on a card written before it was counted).
+    fn parked_text(&self) -> String {
+        self.parked.map_or("–".to_owned(), |p| p.to_string())
+    }
+
     /// What differs between the recorded figures and a rerun (empty when they agree).
     fn differences(&self, now: &CardEval) -> Vec<String> {
         let mut d = Vec::new();
@@ -287,7 +292,7 @@ pub fn card_markdown(c: &Card) -> String {
             e.max_steps,
             e.mean_steps,
             e.collisions,
-            e.parked.map_or("–".to_owned(), |p| p.to_string()),
+            e.parked_text(),
             e.mean_eqs,
             e.mean_ees,
             e.mean_distance_m
@@ -304,9 +309,7 @@ pub fn write_index(dir: &Path) -> Result<()> {
         "# Shipped policies\n\nWritten by `mapless policies ship` from the cards below; `mapless policies list` prints the same. Try one: `mapless eval --policy NAME --map env3 --max-steps 3000`, `mapless rollout --policy NAME --map env1`. `mapless policies check` (run by the test suite) reruns each card's short evaluations and fails if a figure changed.\n\n",
     );
     s.push_str("| policy | algorithm | trained on | training | on its training map: steps, collisions, parked, EQS, EES | env3 (3,000 steps): steps, collisions, parked, EQS, EES |\n|---|---|---|---|---|---|\n");
-    let fmt = |e: Option<&CardEval>| {
-        e.map_or("–".to_owned(), |e| format!("{:.0}, {}/{}, {}, {:.1}, {:.2}", e.mean_steps, e.collisions, e.episodes, e.parked.map_or("–".to_owned(), |p| p.to_string()), e.mean_eqs, e.mean_ees))
-    };
+    let fmt = |e: Option<&CardEval>| e.map_or("–".to_owned(), |e| format!("{:.0}, {}/{}, {}, {:.1}, {:.2}", e.mean_steps, e.collisions, e.episodes, e.parked_text(), e.mean_eqs, e.mean_ees));
     for c in &cards {
         let own = c.evaluations.iter().find(|e| e.map == c.trained_on && !e.check);
         let env3 = c.evaluations.iter().find(|e| e.map == "env3" && !e.check);

@@ -379,7 +379,8 @@ pub fn load(path: &Path, device: Option<&str>) -> Result<(Agent, serde_json::Val
 }
 
 /// Restores the checkpoint at `path` into `agent`, which must have the same algorithm,
-/// dimensions and hidden width; the agent keeps its own config otherwise (e.g. a changed
+/// dimensions, hidden width and critic normalisation (`critic_layer_norm` changes no
+/// tensor's shape, only what the stored critics compute); the agent keeps its own config otherwise (e.g. a changed
 /// learning rate or device). Returns the caller's `extra` JSON. On error `agent` may be
 /// partly overwritten: discard it.
 pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, LearnerError> {
@@ -396,6 +397,9 @@ pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, Lear
     }
     if l.state.config.hidden_width != have.hidden_width {
         return Err(mismatch(&l.dir, "hidden_width", have.hidden_width, l.state.config.hidden_width));
+    }
+    if l.state.config.critic_layer_norm != have.critic_layer_norm {
+        return Err(mismatch(&l.dir, "critic_layer_norm", have.critic_layer_norm, l.state.config.critic_layer_norm));
     }
     agent.restore_state(&l.tensors, l.state.agent).map_err(|reason| mismatch(&l.dir, "tensors", "this agent's layout", reason))?;
     Ok(l.state.extra)

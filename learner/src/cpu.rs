@@ -273,15 +273,7 @@ fn layer_norm_backward(d: &mut [f32], n: &[f32], rstd: &[f32], width: usize) {
     let w = width as f32;
     for ((row, nr), &r) in d.chunks_exact_mut(width).zip(n.chunks_exact(width)).zip(rstd) {
         let mean_d = lane_sum(row, |v| v) / w;
-        let mut acc = [0.0f32; 8];
-        let (rc, nc) = (row.chunks_exact(8), nr.chunks_exact(8));
-        let tail: f32 = rc.remainder().iter().zip(nc.remainder()).map(|(&v, &x)| v * x).sum();
-        for (a, b) in rc.zip(nc) {
-            for ((s, &v), &x) in acc.iter_mut().zip(a).zip(b) {
-                *s += v * x;
-            }
-        }
-        let mean_dn = (acc.iter().sum::<f32>() + tail) / w;
+        let mean_dn = lane_sum2(row, nr, |v, x| v * x) / w;
         for (v, &x) in row.iter_mut().zip(nr) {
             *v = r * (*v - mean_d - x * mean_dn);
         }
@@ -292,12 +284,19 @@ fn layer_norm_backward(d: &mut [f32], n: &[f32], rstd: &[f32], width: usize) {
 /// single running f32 sum cannot be reordered, so it would not vectorise).
 #[inline(always)]
 fn lane_sum(values: &[f32], f: impl Fn(f32) -> f32) -> f32 {
+    lane_sum2(values, values, |v, _| f(v))
+}
+
+/// Σ f(a, b) over two equally long slices, pairwise, in the same 8 partial sums as `lane_sum`.
+#[inline(always)]
+fn lane_sum2(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
+    debug_assert_eq!(a.len(), b.len());
     let mut acc = [0.0f32; 8];
-    let chunks = values.chunks_exact(8);
-    let tail: f32 = chunks.remainder().iter().map(|&v| f(v)).sum();
-    for c in chunks {
-        for (s, &v) in acc.iter_mut().zip(c) {
-            *s += f(v);
+    let (ac, bc) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ac.remainder().iter().zip(bc.remainder()).map(|(&x, &y)| f(x, y)).sum();
+    for (ca, cb) in ac.zip(bc) {
+        for ((s, &x), &y) in acc.iter_mut().zip(ca).zip(cb) {
+            *s += f(x, y);
         }
     }
     acc.iter().sum::<f32>() + tail

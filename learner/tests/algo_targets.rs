@@ -501,7 +501,8 @@ fn fused_updates_match_autograd() {
     ];
     for (kind, log_std_max, norm) in cases {
         // Normalising divides by each row's σ, which magnifies the two paths' rounding of the
-        // pre-activations (libtorch's f32 moments against the fused path's f64 ones).
+        // pre-activations (libtorch's moments against the fused path's eight-lane f32 sums,
+        // which add in another order).
         let tol = if norm { 2e-5 } else { 1e-6 };
         let (obs, act, rows) = (5usize, 2usize, 24usize);
         let make = |fused: bool| {
