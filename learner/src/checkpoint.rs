@@ -380,8 +380,8 @@ pub fn load(path: &Path, device: Option<&str>) -> Result<(Agent, serde_json::Val
 
 /// Restores the checkpoint at `path` into `agent`, which must have the same algorithm,
 /// dimensions, hidden width and critic normalisation (`critic_layer_norm` changes no
-/// tensor's shape, only what the stored critics compute); the agent keeps its own config otherwise (e.g. a changed
-/// learning rate or device). Returns the caller's `extra` JSON. On error `agent` may be
+/// tensor's shape, only what the stored critics compute); the agent keeps its own config
+/// otherwise (e.g. a changed learning rate or device). Returns the caller's `extra` JSON. On error `agent` may be
 /// partly overwritten: discard it.
 pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, LearnerError> {
     let l = read_verified(path)?;

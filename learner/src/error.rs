@@ -180,7 +180,7 @@ pub enum LearnerError {
     },
 
     /// An intact checkpoint that does not fit: another algorithm, other dimensions, another
-    /// format version, or tensors of other shapes.
+    /// critic normalisation, another format version, or tensors of other shapes.
     #[error("checkpoint `{path}` does not match: {what} is {found}, expected {expected}")]
     CheckpointMismatch {
         /// The checkpoint directory.
