@@ -15,12 +15,25 @@ leftovers() {
     local f="label=com.docker.compose.project=$project"
     { docker ps -aq --filter "$f"; docker network ls -q --filter "$f"; docker volume ls -q --filter "$f"; } | sed '/^$/d'
 }
+# Why the drill failed, one line per failure, for the caller's finish to print last (after
+# the services' log tails, where a CI excerpt of the output's end still shows it) and to copy
+# to $MAPLESS_DRILL_FAILURE_FILE when that is set (tests/compose_drill.rs puts it in its panic).
+failures="$(mktemp)"
+failed() {
+    echo "$me: $*" >&2
+    echo "$*" >> "$failures"
+    if [ -n "${MAPLESS_DRILL_FAILURE_FILE:-}" ]; then echo "$me: $*" >> "$MAPLESS_DRILL_FAILURE_FILE"; fi
+}
+# die MESSAGE: records MESSAGE and ends the drill.
+die() { failed "$*"; exit 1; }
+# The recorded failures, for finish: "ME: FAILED: …" lines.
+print_failures() { sed "s/^/$me: FAILED: /" "$failures"; }
 # wait_for SECONDS WHAT COMMAND...: runs COMMAND every 2 s until it succeeds.
 wait_for() {
     local limit=$1 what=$2; shift 2
     local start=$SECONDS
     until "$@"; do
-        if (( SECONDS - start > limit )); then echo "$me: timed out after ${limit}s waiting for: $what" >&2; return 1; fi
+        if (( SECONDS - start > limit )); then failed "timed out after ${limit}s waiting for: $what"; return 1; fi
         sleep 2
     done
     echo "$me: ok after $(( SECONDS - start ))s: $what"

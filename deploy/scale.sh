@@ -42,7 +42,7 @@ esac
 tmp=$(mktemp -d)
 if [ "${LIMITER:-on}" = off ]; then
     sed 's/^\(    error_buffer:\).*/\1 1.0e12/' config/replay.yaml > "$tmp/replay.yaml"
-    grep -q "error_buffer: 1.0e12" "$tmp/replay.yaml" || { echo "scale: config/replay.yaml has no rate_limiter.error_buffer to lift" >&2; exit 1; }
+    grep -q "error_buffer: 1.0e12" "$tmp/replay.yaml" || die "config/replay.yaml has no rate_limiter.error_buffer to lift"
     printf 'services:\n  replay:\n    volumes:\n      - %s/replay.yaml:/config/replay.yaml:ro\n' "$tmp" > "$tmp/unlimited.yaml"
     compose_overrides=("$tmp/unlimited.yaml")
 fi

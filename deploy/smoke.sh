@@ -50,11 +50,11 @@ export MAPLESS_TAG="${MAPLESS_TAG:-local}"
 # Prometheus's host port: any free one (on the host's loopback), found with `docker-compose port`.
 export MAPLESS_PROMETHEUS_PORT=0
 actors="${ACTORS:-4}"
-[ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
-./certs.sh
 me=smoke project=mapless-smoke
-# dc, leftovers, wait_for, learner_field, replay_metrics, prom, prom_up: deploy/lib.sh.
+# dc, leftovers, wait_for, die, learner_field, replay_metrics, prom, prom_up: deploy/lib.sh.
 source ./lib.sh
+[ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG" || die "deploy/images.sh failed (its output is above)"
+./certs.sh || die "deploy/certs.sh failed (its output is above)"
 logs="$(mktemp -d)/compose.log"
 finish() {
     local rc=$?
@@ -63,12 +63,12 @@ finish() {
         dc down -v >/dev/null 2>&1 || true
         if [ -n "$(leftovers)" ]; then echo "smoke: left behind after down -v:"; leftovers; rc=1; else echo "smoke: ok: down -v left no container, network or volume"; fi
     fi
-    if [ $rc -eq 0 ]; then echo "smoke: PASS (logs: $logs)"; else echo "smoke: FAIL (logs: $logs)"; tail -40 "$logs"; fi
+    if [ $rc -eq 0 ]; then echo "smoke: PASS (logs: $logs)"; else echo "smoke: FAIL (logs: $logs)"; tail -40 "$logs"; print_failures; fi
     exit $rc
 }
 trap finish EXIT
 # Under `set -e` a failing command ends the drill without a word: name it.
-trap 'echo "smoke: failed at line $LINENO: $BASH_COMMAND (exit $?)" >&2' ERR
+trap 'failed "failed at line $LINENO: $BASH_COMMAND (exit $?)"' ERR
 dc down -v >/dev/null 2>&1 || true
 started=$SECONDS
 dc up -d --scale actor="$actors"
@@ -117,7 +117,7 @@ wait_for 120 "every container reports healthy" all_healthy
 # No container runs its process as root: each runs as the images' user, 65532 (deploy/Dockerfile, deploy/images.sh).
 for c in $(dc ps -q); do
     uid=$(ps -o uid= -p "$(docker inspect -f '{{.State.Pid}}' "$c")" | tr -d ' ')
-    [ "$uid" = 65532 ] || { echo "smoke: container ${c:0:12} ($(docker inspect -f '{{.Name}}' "$c")) runs as uid $uid, not 65532" >&2; exit 1; }
+    [ "$uid" = 65532 ] || die "container ${c:0:12} ($(docker inspect -f '{{.Name}}' "$c")) runs as uid $uid, not 65532"
 done
 echo "smoke: ok: every container's process runs as uid 65532, not root"
 wait_for 300 "learner updates > 100" learner_updates
@@ -127,7 +127,7 @@ wait_for 120 "$actors distinct actor ids on slots $(seq_slots "$actors") write t
 for cid in $(dc ps -q actor); do
     wait_for 120 "replica ${cid:0:12} (slot $(slot_of "$cid"), $(id_of "$cid")) acts with policy ≥ v2, batches acknowledged" actor_ok "$cid"
 done
-[ "$(registered)" = "$actors" ] || { echo "smoke: the replay holds $(registered) slots, expected $actors" >&2; exit 1; }
+[ "$(registered)" = "$actors" ] || die "the replay holds $(registered) slots, expected $actors"
 show_actors
 
 # The run folder (the monitor): episodes from every replica arrive in episodes.csv.
@@ -140,24 +140,24 @@ echo "smoke: ok: the run folder (monitor) holds $(run_file episodes.csv | tail -
 # Observability from the host: Prometheus (the one published port) scraped every replica, found
 # by DNS, with the metrics token; a scrape without it is refused; the mapless console renders.
 wait_for 60 "Prometheus scraped the replay, the learner and all $actors actor replicas (up == 1)" prom_scraped "$actors"
-status=$(replay_metrics_status) && [ "$status" = 401 ] || { echo "smoke: a scrape of the replay's /metrics without the token got HTTP $status, not 401" >&2; exit 1; }
-status=$(replay_metrics_status -H "Authorization: Bearer wrong") && [ "$status" = 401 ] || { echo "smoke: a scrape with a wrong token got HTTP $status, not 401" >&2; exit 1; }
-console=$(prom "/consoles/mapless.html") || { echo "smoke: the mapless console did not render" >&2; exit 1; }
-grep -q "mapless cluster" <<<"$console" && ! grep -qi "error executing template" <<<"$console" || { echo "smoke: the mapless console: ${console:0:400}" >&2; exit 1; }
+status=$(replay_metrics_status) && [ "$status" = 401 ] || die "a scrape of the replay's /metrics without the token got HTTP $status, not 401"
+status=$(replay_metrics_status -H "Authorization: Bearer wrong") && [ "$status" = 401 ] || die "a scrape with a wrong token got HTTP $status, not 401"
+console=$(prom "/consoles/mapless.html") || die "the mapless console did not render"
+grep -q "mapless cluster" <<<"$console" && ! grep -qi "error executing template" <<<"$console" || die "the mapless console: ${console:0:400}"
 echo "smoke: ok: Prometheus on the host's $(dc port prometheus 9090) scraped every replica; no token or a wrong one: 401; the console renders"
 
 # Tokens and roles: the replay's ServerInfo, asked inside its container over TLS, answers the
 # learner's token with every actor id that wrote; no token is UNAUTHENTICATED and the actor's
 # token PERMISSION_DENIED (a leaked actor token cannot read the replay).
 replay_info() { docker exec "$(dc ps -q replay)" /usr/local/bin/mapless-replay info 127.0.0.1:50051 --tls-ca-file /secrets/ca.pem "$@" 2>&1; }
-info=$(replay_info --token-file /secrets/learner-token) || { echo "smoke: server info with the learner's token failed: $info" >&2; exit 1; }
+info=$(replay_info --token-file /secrets/learner-token) || die "server info with the learner's token failed: $info"
 listed=$(grep -c '^actor actor-' <<<"$info" || true)
-[ "$listed" -ge "$actors" ] || { echo "smoke: server info lists $listed actor ids, expected $actors: $info" >&2; exit 1; }
+[ "$listed" -ge "$actors" ] || die "server info lists $listed actor ids, expected $actors: $info"
 echo "smoke: ok: server info (learner's token) lists $listed actor ids: $(head -1 <<<"$info")"
-if out=$(replay_info); then echo "smoke: server info without a token was answered: $out" >&2; exit 1; fi
-grep -qi "unauthenticated" <<<"$out" || { echo "smoke: server info without a token failed, but not as UNAUTHENTICATED: $out" >&2; exit 1; }
-if out=$(replay_info --token-file /secrets/actor-token); then echo "smoke: server info with the actor's token was answered: $out" >&2; exit 1; fi
-grep -qi "permission" <<<"$out" || { echo "smoke: server info with the actor's token failed, but not as PERMISSION_DENIED: $out" >&2; exit 1; }
+if out=$(replay_info); then die "server info without a token was answered: $out"; fi
+grep -qi "unauthenticated" <<<"$out" || die "server info without a token failed, but not as UNAUTHENTICATED: $out"
+if out=$(replay_info --token-file /secrets/actor-token); then die "server info with the actor's token was answered: $out"; fi
+grep -qi "permission" <<<"$out" || die "server info with the actor's token failed, but not as PERMISSION_DENIED: $out"
 echo "smoke: ok: without a token and with the actor's token, server info is refused ($(tail -1 <<<"$out" | cut -c1-160))"
 
 cid=$(dc ps -q actor | sed -n 1p)
@@ -169,19 +169,19 @@ wait_for 60 "Docker restarted it" bash -c "[ \"\$(docker inspect -f '{{.RestartC
 new_incarnation_writes() { local id; id=$(id_of "$cid"); [ "$id" != "$old_id" ] && [ -n "$(rows_of "$id")" ]; }
 wait_for 120 "its new incarnation writes" new_incarnation_writes
 new_id=$(id_of "$cid")
-[ "$(slot_of "$cid")" = "$slot" ] || { echo "smoke: the restarted replica got slot $(slot_of "$cid"), not its own $slot" >&2; exit 1; }
-[ "$(registered)" = "$actors" ] || { echo "smoke: a restart took a new slot ($(registered) held)" >&2; exit 1; }
+[ "$(slot_of "$cid")" = "$slot" ] || die "the restarted replica got slot $(slot_of "$cid"), not its own $slot"
+[ "$(registered)" = "$actors" ] || die "a restart took a new slot ($(registered) held)"
 echo "smoke: ok: the restarted replica kept slot $slot under a new incarnation id $new_id"
 
 more=$(( actors + 2 ))
 dc up -d --scale actor="$more" >/dev/null 2>&1
 wait_for 120 "two new replicas: $more slots $(seq_slots "$more") write" want_slots "$(seq_slots "$more")"
-[ "$(dc ps -q actor | wc -l)" = "$more" ] || { echo "smoke: $(dc ps -q actor | wc -l) actor containers, expected $more" >&2; exit 1; }
+[ "$(dc ps -q actor | wc -l)" = "$more" ] || die "$(dc ps -q actor | wc -l) actor containers, expected $more"
 show_actors
 wait_for 60 "Prometheus found the two new replicas by itself: $more actors scraped" prom_scraped "$more"
 
 dc up -d --scale actor=2 >/dev/null 2>&1
-[ "$(dc ps -q actor | wc -l)" = 2 ] || { echo "smoke: $(dc ps -q actor | wc -l) actor containers after scaling to 2" >&2; exit 1; }
+[ "$(dc ps -q actor | wc -l)" = 2 ] || die "$(dc ps -q actor | wc -l) actor containers after scaling to 2"
 declare -A before
 for c in $(dc ps -q actor); do id=$(id_of "$c"); before[$id]=$(rows_of "$id"); done
 both_grow() {
@@ -207,7 +207,7 @@ shm_again() { local id; id=$(id_of "$shm_c"); [ "$id" != "$shm_old" ] && [ -n "$
 wait_for 120 "killed with SIGKILL, the actor-shm replica is restarted and its new incarnation writes" shm_again
 dead_cleaned() { dc logs --no-color replay 2>/dev/null | grep "resources of dead iceoryx2 nodes" >/dev/null; }
 wait_for 60 "the replay removed the dead writer's iceoryx2 resources" dead_cleaned
-[ "$(slot_of "$shm_c")" = "$(cut -d- -f2 <<<"$shm_old")" ] || { echo "smoke: the restarted actor-shm replica changed slot" >&2; exit 1; }
+[ "$(slot_of "$shm_c")" = "$(cut -d- -f2 <<<"$shm_old")" ] || die "the restarted actor-shm replica changed slot"
 echo "smoke: ok: actor-shm $shm_old, killed, came back as $(id_of "$shm_c") on its slot, over shared memory"
 before[$(id_of "$shm_c")]=$(rows_of "$(id_of "$shm_c")")
 
@@ -222,9 +222,9 @@ echo "smoke: restart the replay container (${size_before} rows stored)"
 dc restart -t 60 replay >/dev/null 2>&1
 wait_for 180 "the replay is healthy again" replay_healthy
 size_after=$(table_size)
-[ "${size_after:-0}" -ge "$size_before" ] || { echo "smoke: the replay came back with ${size_after:-no} rows, ${size_before} before" >&2; exit 1; }
+[ "${size_after:-0}" -ge "$size_before" ] || die "the replay came back with ${size_after:-no} rows, ${size_before} before"
 for id in "${!before[@]}"; do
-    awk -v a="$(rows_of "$id")" -v b="${before[$id]}" 'BEGIN { exit !(a >= b) }' || { echo "smoke: $id had ${before[$id]} rows before the restart, $(rows_of "$id") after" >&2; exit 1; }
+    awk -v a="$(rows_of "$id")" -v b="${before[$id]}" 'BEGIN { exit !(a >= b) }' || die "$id had ${before[$id]} rows before the restart, $(rows_of "$id") after"
 done
 echo "smoke: ok: the replay's contents came back from its volume (${size_before} rows before, ${size_after} after)"
 wait_for 120 "the actors reconnected and write again" both_grow
@@ -248,21 +248,35 @@ wait_for 120 "the cut-off replica is back and writes again" both_grow
 # a replay restart and a network cut (resends are acknowledged as duplicates, not stored twice).
 ids=$(dc ps -q actor actor-shm)
 dc stop -t 60 actor actor-shm >/dev/null 2>&1
+# Every replica is checked before the drill ends; a replica that fails shows its whole report
+# (its sink's batches, acks, duplicates, rejections, reconnects and last error) and the replay's
+# counters under its id, which tell a lost row from a doubled one.
+once=0
 for c in $ids; do
     report=$(docker logs "$c" 2>/dev/null | grep '^{"actor_id"' | tail -1)
     id=$(grep -o '"actor_id":"[^"]*"' <<<"$report" | cut -d'"' -f4)
     sent=$(grep -o '"rows":[0-9]*' <<<"$report" | cut -d: -f2)
-    [ -n "$id" ] && [ -n "$sent" ] || { echo "smoke: replica ${c:0:12} printed no report at its stop" >&2; exit 1; }
-    grep -q '"unacked_at_exit":false' <<<"$report" || { echo "smoke: $id stopped with unacknowledged rows" >&2; exit 1; }
+    if [ -z "$id" ] || [ -z "$sent" ]; then
+        failed "replica ${c:0:12} printed no report at its stop; its last lines:"; docker logs --tail 5 "$c" 2>&1 | sed 's/^/smoke:   /'; once=1; continue
+    fi
     stored=$(rows_of "$id" | awk '{ printf "%d", $1 }')
-    [ "$stored" = "$sent" ] || { echo "smoke: $id sent $sent rows, the replay holds ${stored:-none} under its id" >&2; exit 1; }
-    echo "smoke: ok: $id sent $sent rows and the replay holds exactly $stored"
+    if ! grep -q '"unacked_at_exit":false' <<<"$report"; then
+        failed "$id stopped with unacknowledged rows (sent $sent, the replay holds ${stored:-none})"
+    elif [ "$stored" != "$sent" ]; then
+        failed "$id sent $sent rows, the replay holds ${stored:-none} under its id"
+    else
+        echo "smoke: ok: $id sent $sent rows and the replay holds exactly $stored"; continue
+    fi
+    once=1
+    echo "smoke:   its report: $report"
+    replay_metrics | grep -F "\"$id\"" | sed 's/^/smoke:   replay: /'
 done
+[ $once = 0 ] || die "exactly-once delivery failed (above)"
 
 dc stop -t 60 >/dev/null 2>&1
 # The monitor, stopped, drew the curves, evaluated the newest policy and wrote summary.json.
-summary=$(run_file summary.json) || { echo "smoke: no summary.json in the monitor's run folder" >&2; exit 1; }
-python3 - "$summary" <<'PY' || exit 1
+summary=$(run_file summary.json) || die "no summary.json in the monitor's run folder"
+python3 - "$summary" <<'PY' || die "summary.json fails its check (its line above)"
 import json, sys
 s = json.loads(sys.argv[1])
 ev = s.get("evaluation") or {}
@@ -272,10 +286,10 @@ print(f"smoke: {'ok' if ok else 'FAIL'}: summary.json: {s['episodes']} episodes,
 sys.exit(0 if ok else 1)
 PY
 for f in curves.png evals.csv policy.safetensors eval/episode-1.png; do
-    [ -n "$(run_file "$f" | head -c 8)" ] || { echo "smoke: the run folder lacks $f" >&2; exit 1; }
+    [ -n "$(run_file "$f" | head -c 8)" ] || die "the run folder lacks $f"
 done
 echo "smoke: ok: the run folder also holds curves.png, evals.csv, policy.safetensors and eval/"
 # Not `grep -q`: it would stop reading at the match, and under pipefail the SIGPIPE that `logs`
 # then gets fails the pipeline.
-dc logs --no-color learner 2>/dev/null | grep '"event":"stopped"' >/dev/null || { echo "smoke: the learner did not report its final checkpoint" >&2; exit 1; }
+dc logs --no-color learner 2>/dev/null | grep '"event":"stopped"' >/dev/null || die "the learner did not report its final checkpoint"
 echo "smoke: ok: the learner stopped with a final checkpoint"

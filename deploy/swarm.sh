@@ -19,11 +19,11 @@ here="$(cd -- "$(dirname -- "${BASH_SOURCE[0]}")" && pwd -P)"
 cd "$here"
 export MAPLESS_TAG="${MAPLESS_TAG:-local}"
 stack=mapless-swarm
-[ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG"
-# wait_for (deploy/lib.sh; its compose helpers go unused here).
+# wait_for and die (deploy/lib.sh; its compose helpers go unused here).
 me=swarm project=$stack
 source ./lib.sh
-./certs.sh
+[ "${SKIP_IMAGES:-}" = 1 ] || ./images.sh "$MAPLESS_TAG" || die "deploy/images.sh failed (its output is above)"
+./certs.sh || die "deploy/certs.sh failed (its output is above)"
 say() { echo "swarm: $*"; }
 made_swarm=0
 if [ "$(docker info --format '{{.Swarm.LocalNodeState}}')" != active ]; then
@@ -43,11 +43,11 @@ finish() {
     if [ "$made_swarm" = 1 ]; then docker swarm leave --force >/dev/null 2>&1 || true; fi
     left="$(docker ps -aq --filter "label=com.docker.stack.namespace=$stack"; docker volume ls -q --filter "label=com.docker.stack.namespace=$stack"; docker network ls -q --filter "label=com.docker.stack.namespace=$stack")"
     if [ -n "$left" ]; then say "left behind: $left"; rc=1; fi
-    if [ $rc -eq 0 ]; then say "PASS"; else say "FAIL"; for s in replay learner monitor actor; do docker service logs --tail 15 "${stack}_$s" 2>&1 | sed "s/^/  /"; done; fi
+    if [ $rc -eq 0 ]; then say "PASS"; else say "FAIL"; for s in replay learner monitor actor; do docker service logs --tail 15 "${stack}_$s" 2>&1 | sed "s/^/  /"; done; print_failures; fi
     exit $rc
 }
 trap finish EXIT
-trap 'echo "swarm: failed at line $LINENO: $BASH_COMMAND (exit $?)" >&2' ERR
+trap 'failed "failed at line $LINENO: $BASH_COMMAND (exit $?)"' ERR
 docker node update --label-add mapless.replay=true --label-add mapless.learner=true "$node" >/dev/null
 docker stack deploy --resolve-image never -c stack.yaml "$stack" >/dev/null
 say "deployed $stack"
@@ -82,13 +82,13 @@ prom_sees() { [ "$(scraped_actors)" = "$1" ]; }
 wait_for 240 "every service's task runs and is healthy" healthy
 for c in $(docker ps -q --filter "label=com.docker.stack.namespace=$stack"); do
     uid=$(ps -o uid= -p "$(docker inspect -f '{{.State.Pid}}' "$c")" | tr -d ' ')
-    [ "$uid" = 65532 ] || { echo "swarm: $(docker inspect -f '{{.Name}}' "$c") runs as uid $uid" >&2; exit 1; }
+    [ "$uid" = 65532 ] || die "$(docker inspect -f '{{.Name}}' "$c") runs as uid $uid"
 done
 say "ok: no task runs as root"
 wait_for 300 "the learner updates (> 100)" learner_learns
 wait_for 120 "2 actor replicas write" writers 2
 hosts=$(for c in $(tasks actor); do docker inspect -f '{{.Config.Hostname}}' "$c"; done | sort | tr '\n' ' ')
-[ "$hosts" = "actor-1 actor-2 " ] || { echo "swarm: actor host names '$hosts', expected actor-1 actor-2" >&2; exit 1; }
+[ "$hosts" = "actor-1 actor-2 " ] || die "actor host names '$hosts', expected actor-1 actor-2"
 say "ok: replicas named by task slot: $hosts; writing: $(writing | tr '\n' ' ')"
 
 docker service scale --detach "${stack}_actor=4" >/dev/null
@@ -114,5 +114,5 @@ new_id() { docker logs "$new" 2>&1 | grep -o 'actor_id=actor-[^ ]*' | tail -1 | 
 writes_again() { local id; id=$(new_id); [ -n "$id" ] && [ "$id" != "$old_id" ] && writing | grep -qx "$id"; }
 wait_for 120 "its new incarnation writes" writes_again
 old_slot=$(cut -d- -f2 <<<"$old_id"); new_slot=$(cut -d- -f2 <<<"$(new_id)")
-[ "$old_slot" = "$new_slot" ] || { echo "swarm: $name came back on replay slot $new_slot, not $old_slot" >&2; exit 1; }
+[ "$old_slot" = "$new_slot" ] || die "$name came back on replay slot $new_slot, not $old_slot"
 say "ok: $name came back on replay slot $new_slot as $(new_id)"

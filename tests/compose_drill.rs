@@ -31,20 +31,33 @@ fn the_compose_cluster_and_the_swarm_stack_scale_survive_faults_and_deliver_exac
         }
     }
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("the workspace root");
+    // The drills write why they failed here (deploy/lib.sh's `failed`), for the panic message:
+    // the failure must not be only somewhere above the cluster's log tail.
+    let failures = tempfile::NamedTempFile::new().expect("a temporary file");
     let status = Command::new("bash")
         .arg(root.join("deploy/smoke.sh"))
         // The suite's own (debug) binaries: no release build just for the images.
         .env("MAPLESS_PROFILE", "dev")
         .env("MAPLESS_TAG", "suite")
+        .env("MAPLESS_DRILL_FAILURE_FILE", failures.path())
         .status()
         .expect("bash runs deploy/smoke.sh");
-    assert!(status.success(), "deploy/smoke.sh failed: its steps and the cluster's last log lines are above");
+    assert!(status.success(), "deploy/smoke.sh failed:\n{}(its steps and the cluster's last log lines are above)", why(failures.path()));
     let status = Command::new("bash")
         .arg(root.join("deploy/swarm.sh"))
         // The images deploy/smoke.sh has just built.
         .env("SKIP_IMAGES", "1")
         .env("MAPLESS_TAG", "suite")
+        .env("MAPLESS_DRILL_FAILURE_FILE", failures.path())
         .status()
         .expect("bash runs deploy/swarm.sh");
-    assert!(status.success(), "deploy/swarm.sh failed: its steps and the services' last log lines are above");
+    assert!(status.success(), "deploy/swarm.sh failed:\n{}(its steps and the services' last log lines are above)", why(failures.path()));
+}
+
+/// What a drill recorded as its failures, or a line saying it recorded none.
+fn why(path: &Path) -> String {
+    match std::fs::read_to_string(path) {
+        Ok(text) if !text.trim().is_empty() => text,
+        _ => "(no failure recorded: the drill ended before its checks)\n".to_owned(),
+    }
 }
