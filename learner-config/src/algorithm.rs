@@ -118,6 +118,15 @@ pub struct LearnerConfig {
     /// bias the parameters, checkpoints' layout and the published actor are unchanged; only
     /// the critics (all algorithms, both update paths) compute differently.
     pub critic_layer_norm: bool,
+    /// Largest TD target: every algorithm's yᵢ (eqs. 2, 7, 9) is clipped to at most this
+    /// before the critic step; `null` clips nothing. Beyond the paper, null in every preset
+    /// [inferred: null]. Its reason: no return can exceed the reward's per-step supremum over
+    /// 1 − γ, yet runs of `explore-sac` with five rays per beam drove their Q means past 2,000
+    /// (docs/cluster.md). With eq. (1), the default 12 m sensor and 0.5 m/s the bound is
+    /// (0.0075·12² + 1.5·0.5²)/(1 − 0.995) = 291 (`mapless maps stats` gives a world's own),
+    /// plus, in expectation, α·ln 4/(1 − γ) for SAC's entropy bonus. A guard against the
+    /// critics' runaway, not a cure for what starts it.
+    pub td_target_max: Option<f64>,
     /// DDPG's own settings.
     pub ddpg: DdpgConfig,
     /// TD3's own settings.
@@ -143,6 +152,7 @@ impl Default for LearnerConfig {
             fused_critics: true,
             fused_update: true,
             critic_layer_norm: false,
+            td_target_max: None,
             ddpg: DdpgConfig::default(),
             td3: Td3Config::default(),
             sac: SacConfig::default(),
@@ -276,6 +286,11 @@ impl LearnerConfig {
             && !positive(c)
         {
             return bad("grad_clip_norm", format!("is {c}; must be finite and > 0, or null"));
+        }
+        if let Some(m) = self.td_target_max
+            && !m.is_finite()
+        {
+            return bad("td_target_max", format!("is {m}; must be finite, or null"));
         }
         let a = &self.adam;
         if !(a.beta1.is_finite() && (0.0..1.0).contains(&a.beta1)) {

@@ -184,6 +184,43 @@ fn td3_target_takes_the_min_of_twin_target_critics_at_the_clipped_smoothed_actio
     assert_close(&y, &want, 1e-5);
 }
 
+/// `td_target_max` caps every algorithm's targets and changes nothing else: each row is the
+/// uncapped target or the cap, whichever is smaller, and a cap between the rows' targets bites
+/// on some rows and not on others.
+#[test]
+fn td_target_max_caps_the_targets_of_every_algorithm() {
+    let eps = t(vec![0.3, -1.2, 0.8], &[3, 1]);
+    let targets = |kind: AlgorithmKind, max: Option<f64>| {
+        let mut c = cfg(kind);
+        c.td_target_max = max;
+        let mut agent = Agent::new(&c, OBS, ACT).unwrap();
+        match kind {
+            AlgorithmKind::Sac => set(&mut agent, linear_actor("actor", &[0.0, -1.0])),
+            _ => set(&mut agent, linear_actor("target_actor", &[0.0])),
+        }
+        set(&mut agent, linear_critics("target_critic", if kind == AlgorithmKind::Ddpg { &[0.25] } else { &[0.25, -0.5] }));
+        let b = batch();
+        column(&match &agent {
+            Agent::Ddpg(a) => a.td_target(&b),
+            Agent::Td3(a) => a.td_target(&b, &eps),
+            Agent::Sac(a) => a.td_target(&b, &eps),
+        })
+    };
+    for kind in [AlgorithmKind::Ddpg, AlgorithmKind::Td3, AlgorithmKind::Sac] {
+        let free = targets(kind, None);
+        let mut sorted = free.clone();
+        sorted.sort_by(f64::total_cmp);
+        let cap = (sorted[0] + sorted[2]) / 2.0;
+        let capped = targets(kind, Some(cap));
+        let want: Vec<f64> = free.iter().map(|&y| y.min(cap)).collect();
+        assert_close(&capped, &want, 1e-6);
+        assert!(free.iter().any(|&y| y > cap) && free.iter().any(|&y| y < cap), "{kind:?}: the cap {cap} bites on some rows only: {free:?}");
+    }
+    let mut c = cfg(AlgorithmKind::Sac);
+    c.td_target_max = Some(f64::INFINITY);
+    assert!(c.validate().is_err(), "an infinite cap is refused");
+}
+
 #[test]
 fn td3_smoothing_noise_is_gaussian_with_sigma_0_45_clipped_to_half() {
     let mut agent = Agent::new(&cfg(AlgorithmKind::Td3), OBS, ACT).unwrap();
@@ -499,13 +536,16 @@ fn fused_updates_match_autograd() {
         (AlgorithmKind::Td3, 2.0, true),
         (AlgorithmKind::Ddpg, 2.0, true),
     ];
-    for (kind, log_std_max, norm) in cases {
+    // Each case again with targets capped where the cap bites on some rows (rewards and
+    // early Q-values lie around ±1).
+    let cases = cases.into_iter().flat_map(|(k, l, n)| [(k, l, n, None), (k, l, n, Some(0.25))]);
+    for (kind, log_std_max, norm, cap) in cases {
         // Normalising divides by each row's σ, which magnifies the two paths' rounding of the
         // pre-activations (libtorch's moments against the fused path's eight-lane f32 sums,
         // which add in another order).
         let tol = if norm { 2e-5 } else { 1e-6 };
         let (obs, act, rows) = (5usize, 2usize, 24usize);
-        let make = |fused: bool| {
+        let make = |fused: bool, cap: Option<f64>| {
             let mut c = LearnerConfig {
                 algorithm: kind,
                 hidden_width: 32,
@@ -516,13 +556,14 @@ fn fused_updates_match_autograd() {
                 fused_update: fused,
                 grad_clip_norm: Some(0.5),
                 critic_layer_norm: norm,
+                td_target_max: cap,
                 ..LearnerConfig::default()
             };
             c.sac.log_std_max = log_std_max;
             c.sac.alpha_lr = 1e-2;
             Agent::new(&c, obs, act).unwrap()
         };
-        let (mut fused, mut autograd) = (make(true), make(false));
+        let (mut fused, mut autograd) = (make(true, cap), make(false, cap));
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
         let mut last = None;
         for step in 0..6 {
@@ -536,6 +577,12 @@ fn fused_updates_match_autograd() {
             .unwrap();
             let sf = fused.update(&b).unwrap();
             let sa = autograd.update(&b).unwrap();
+            if let (0, Some(c)) = (step, cap) {
+                // The cap bites: the same first update uncapped has a higher target mean.
+                let mean = |s: &mapless_learner::algo::UpdateStats| s.scalars.iter().find(|(n, _)| *n == metric::TARGET_MEAN).unwrap().1;
+                let free = make(true, None).update(&b).unwrap();
+                assert!(mean(&sf) <= c && mean(&sf) < mean(&free) - 1e-3, "{kind:?}: capped target mean {} vs uncapped {}", mean(&sf), mean(&free));
+            }
             last = Some(b);
             assert_eq!(sf.scalars.len(), sa.scalars.len());
             for ((nf, vf), (na, va)) in sf.scalars.iter().zip(&sa.scalars) {
@@ -555,10 +602,10 @@ fn fused_updates_match_autograd() {
                 if d > worst.0 {
                     worst = (d, format!("{name}[{i}]"));
                 }
-                assert!(d <= tol, "{kind:?} {name}[{i}]: {g} vs {w} (log σ max {log_std_max}, critic layer norm {norm})");
+                assert!(d <= tol, "{kind:?} {name}[{i}]: {g} vs {w} (log σ max {log_std_max}, critic layer norm {norm}, target cap {cap:?})");
             }
         }
-        eprintln!("{kind:?} (log σ max {log_std_max}, critic layer norm {norm}): largest relative difference {:.2e} at {}", worst.0, worst.1);
+        eprintln!("{kind:?} (log σ max {log_std_max}, critic layer norm {norm}, target cap {cap:?}): largest relative difference {:.2e} at {}", worst.0, worst.1);
         // Rounding differs somewhere, so the fused path did run (it falls back to autograd
         // on batches it cannot read, which would make the two agents bit-identical).
         assert!(worst.0 > 0.0, "{kind:?}: the two paths are bit-identical");
@@ -575,7 +622,7 @@ fn fused_updates_match_autograd() {
         assert_eq!(errors[0], errors[1], "{kind:?}");
         assert!(errors[0].contains("losses/critic"), "{}", errors[0]);
         // The updates moved the networks: the comparison is not of two untouched copies.
-        let fresh = state(&make(true));
+        let fresh = state(&make(true, cap));
         assert!(fresh["actor.l1.weight"] != sf["actor.l1.weight"]);
         assert!(fresh["critic.l0.weight"] != sf["critic.l0.weight"]);
     }

@@ -31,7 +31,7 @@
 use tch::Tensor;
 
 use super::fused;
-use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, deterministic_act, finite, metric};
+use super::{Common, CriticStep, Trained, UpdateStats, cap_targets, critic_step, critics, deterministic_act, finite, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
@@ -68,7 +68,7 @@ impl Ddpg {
         let next_action = mlp_forward(self.target_actor.params(), &b.next_obs).tanh();
         let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, &self.c.cfg).get(0);
         let not_done = b.terminal.ones_like() - &b.terminal;
-        &b.reward + not_done * q_next * self.c.cfg.gamma
+        cap_targets(&b.reward + not_done * q_next * self.c.cfg.gamma, self.c.cfg.td_target_max)
     }
 
     /// One update along the paper's equations with libtorch's autograd (module docs). The

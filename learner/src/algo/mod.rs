@@ -535,6 +535,14 @@ pub(crate) fn critics(params: &[Tensor], obs: &Tensor, action: &Tensor, cfg: &Le
     stacked_mlp_forward(params, &x, cfg.fused_critics, cfg.critic_layer_norm)
 }
 
+/// `y` clipped to at most `max` (`LearnerConfig::td_target_max`), or `y` itself.
+pub(crate) fn cap_targets(y: Tensor, max: Option<f64>) -> Tensor {
+    match max {
+        Some(m) => y.clamp_max(m),
+        None => y,
+    }
+}
+
 /// What a critic step reports.
 pub(crate) struct CriticStep {
     pub loss: f64,

@@ -40,7 +40,7 @@
 
 use tch::Tensor;
 
-use super::{Common, CriticStep, Trained, UpdateStats, critic_step, critics, finite, fused, metric};
+use super::{Common, CriticStep, Trained, UpdateStats, cap_targets, critic_step, critics, finite, fused, metric};
 use crate::LearnerError;
 use crate::batch::Minibatch;
 use crate::nets::{ParamSet, mlp_forward, mlp_specs, stacked_mlp_specs};
@@ -178,7 +178,7 @@ impl Sac {
         let q_next = critics(self.target_critic.params(), &b.next_obs, &next.action, &self.c.cfg).amin(0, false);
         let soft_value = q_next - next.log_prob * alpha;
         let not_done = b.terminal.ones_like() - &b.terminal;
-        &b.reward + not_done * soft_value * self.c.cfg.gamma
+        cap_targets(&b.reward + not_done * soft_value * self.c.cfg.gamma, self.c.cfg.td_target_max)
     }
 
     /// The standard normals of one update, `2 · rows · act_dim` into `out`: ε for s′ (the

@@ -161,12 +161,18 @@ impl Work {
         self.critics.iter().map(|c| c.y[i]).fold(f32::INFINITY, |m, v| if m.is_nan() || v.is_nan() { f32::NAN } else { m.min(v) })
     }
 
-    /// y = r + γ(1 − terminal)·v, v per row from `value(row)` (eqs. 2, 7, 9).
-    pub fn targets(&mut self, b: &Batch<'_>, gamma: f64, value: impl Fn(&Self, usize) -> f32) {
+    /// y = r + γ(1 − terminal)·v, v per row from `value(row)` (eqs. 2, 7, 9), clipped to at
+    /// most `max` (`LearnerConfig::td_target_max`) when set. A NaN stays NaN, as with
+    /// libtorch's `clamp_max`, so a diverged critic still fails the finite-loss check.
+    pub fn targets(&mut self, b: &Batch<'_>, gamma: f64, max: Option<f64>, value: impl Fn(&Self, usize) -> f32) {
         let gamma = gamma as f32;
+        let max = max.map_or(f32::INFINITY, |m| m as f32);
         let mut y = std::mem::take(&mut self.y); // reused: `value` reads the rest of `self`
         y.clear();
-        y.extend((0..b.rows).map(|i| b.reward[i] + (1.0 - b.terminal[i]) * value(self, i) * gamma));
+        y.extend((0..b.rows).map(|i| {
+            let t = b.reward[i] + (1.0 - b.terminal[i]) * value(self, i) * gamma;
+            if t > max { max } else { t }
+        }));
         self.y = y;
     }
 
