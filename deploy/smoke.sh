@@ -270,6 +270,8 @@ for c in $ids; do
     once=1
     echo "smoke:   its report: $report"
     { replay_metrics | grep -F "\"$id\"" || true; } | sed 's/^/smoke:   replay: /'
+    # The replay logs every jump in an actor's sequences (batches never stored), by range.
+    { dc logs --no-color replay 2>/dev/null | grep "sequence gap" | grep -F "$id" || true; } | sed 's/^/smoke:   replay log: /'
 done
 [ $once = 0 ] || die "exactly-once delivery failed (above)"
 

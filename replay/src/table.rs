@@ -166,6 +166,12 @@ impl State {
     fn note_insert(&mut self, batch: &TransitionBatch, rows: usize, unix_ms: u64) {
         let newest_version = batch.policy_version[..rows].iter().copied().max().unwrap_or(0);
         let actor = self.actors.entry(batch.actor_id.clone()).or_default();
+        // Actors number their batches 1, 2, 3, …: a jump means batches never stored (refused
+        // as invalid, or lost on the way). Logged, naming the range, so that a count that does
+        // not add up can be traced to its sequences (deploy/smoke.sh shows these lines).
+        if batch.sequence > actor.last_sequence + 1 {
+            tracing::warn!(actor_id = %batch.actor_id, missing_from = actor.last_sequence + 1, missing_to = batch.sequence - 1, "sequence gap: batches in this range were never stored");
+        }
         actor.last_sequence = batch.sequence;
         actor.batches += 1;
         actor.rows += rows as u64;
