@@ -15,19 +15,21 @@ leftovers() {
     local f="label=com.docker.compose.project=$project"
     { docker ps -aq --filter "$f"; docker network ls -q --filter "$f"; docker volume ls -q --filter "$f"; } | sed '/^$/d'
 }
-# Why the drill failed, one line per failure, for the caller's finish to print last (after
-# the services' log tails, where a CI excerpt of the output's end still shows it) and to copy
-# to $MAPLESS_DRILL_FAILURE_FILE when that is set (tests/compose_drill.rs puts it in its panic).
-failures="$(mktemp)"
+# Why the drill failed, one "ME: …" line per failure, for the caller's finish to print last
+# (after the services' log tails, where a CI excerpt of the output's end still shows it). The
+# record is $MAPLESS_DRILL_FAILURE_FILE when that is set (tests/compose_drill.rs puts it in its
+# panic), else a temporary file that finish removes (forget_failures).
+failures="${MAPLESS_DRILL_FAILURE_FILE:-$(mktemp)}"
 failed() {
     echo "$me: $*" >&2
-    echo "$*" >> "$failures"
-    if [ -n "${MAPLESS_DRILL_FAILURE_FILE:-}" ]; then echo "$me: $*" >> "$MAPLESS_DRILL_FAILURE_FILE"; fi
+    echo "$me: $*" >> "$failures"
 }
 # die MESSAGE: records MESSAGE and ends the drill.
 die() { failed "$*"; exit 1; }
 # The recorded failures, for finish: "ME: FAILED: …" lines.
-print_failures() { sed "s/^/$me: FAILED: /" "$failures"; }
+print_failures() { sed "s/^\([^:]*\): /\1: FAILED: /" "$failures"; }
+# Removes the record at the end, unless it is the caller's ($MAPLESS_DRILL_FAILURE_FILE).
+forget_failures() { [ -n "${MAPLESS_DRILL_FAILURE_FILE:-}" ] || rm -f "$failures"; }
 # wait_for SECONDS WHAT COMMAND...: runs COMMAND every 2 s until it succeeds.
 wait_for() {
     local limit=$1 what=$2; shift 2

@@ -46,7 +46,7 @@ if [ "${LIMITER:-on}" = off ]; then
     printf 'services:\n  replay:\n    volumes:\n      - %s/replay.yaml:/config/replay.yaml:ro\n' "$tmp" > "$tmp/unlimited.yaml"
     compose_overrides=("$tmp/unlimited.yaml")
 fi
-trap 'rc=$?; dc down -v >/dev/null 2>&1 || true; rm -rf "$tmp"; exit $rc' EXIT
+trap 'rc=$?; dc down -v >/dev/null 2>&1 || true; rm -rf "$tmp"; forget_failures; exit $rc' EXIT
 trap 'echo "scale: failed at line $LINENO: $BASH_COMMAND (exit $?)" >&2' ERR
 dc down -v >/dev/null 2>&1 || true
 

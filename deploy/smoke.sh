@@ -64,6 +64,7 @@ finish() {
         if [ -n "$(leftovers)" ]; then echo "smoke: left behind after down -v:"; leftovers; rc=1; else echo "smoke: ok: down -v left no container, network or volume"; fi
     fi
     if [ $rc -eq 0 ]; then echo "smoke: PASS (logs: $logs)"; else echo "smoke: FAIL (logs: $logs)"; tail -40 "$logs"; print_failures; fi
+    forget_failures
     exit $rc
 }
 trap finish EXIT
@@ -251,13 +252,13 @@ dc stop -t 60 actor actor-shm >/dev/null 2>&1
 # Every replica is checked before the drill ends; a replica that fails shows its whole report
 # (its sink's batches, acks, duplicates, rejections, reconnects and last error) and the replay's
 # counters under its id, which tell a lost row from a doubled one.
-once=0
+failing=0
 for c in $ids; do
     report=$(docker logs "$c" 2>/dev/null | grep '^{"actor_id"' | tail -1)
     id=$(grep -o '"actor_id":"[^"]*"' <<<"$report" | cut -d'"' -f4)
     sent=$(grep -o '"rows":[0-9]*' <<<"$report" | cut -d: -f2)
     if [ -z "$id" ] || [ -z "$sent" ]; then
-        failed "replica ${c:0:12} printed no report at its stop; its last lines:"; docker logs --tail 5 "$c" 2>&1 | sed 's/^/smoke:   /'; once=1; continue
+        failed "replica ${c:0:12} printed no report at its stop; its last lines:"; docker logs --tail 5 "$c" 2>&1 | sed 's/^/smoke:   /'; failing=1; continue
     fi
     stored=$(rows_of "$id" | awk '{ printf "%d", $1 }')
     if ! grep -q '"unacked_at_exit":false' <<<"$report"; then
@@ -267,13 +268,13 @@ for c in $ids; do
     else
         echo "smoke: ok: $id sent $sent rows and the replay holds exactly $stored"; continue
     fi
-    once=1
+    failing=1
     echo "smoke:   its report: $report"
     { replay_metrics | grep -F "\"$id\"" || true; } | sed 's/^/smoke:   replay: /'
     # The replay logs every jump in an actor's sequences (batches never stored), by range.
     { dc logs --no-color replay 2>/dev/null | grep "sequence gap" | grep -F "$id" || true; } | sed 's/^/smoke:   replay log: /'
 done
-[ $once = 0 ] || die "exactly-once delivery failed (above)"
+[ $failing = 0 ] || die "exactly-once delivery failed (above)"
 
 dc stop -t 60 >/dev/null 2>&1
 # The monitor, stopped, drew the curves, evaluated the newest policy and wrote summary.json.

@@ -44,6 +44,7 @@ finish() {
     left="$(docker ps -aq --filter "label=com.docker.stack.namespace=$stack"; docker volume ls -q --filter "label=com.docker.stack.namespace=$stack"; docker network ls -q --filter "label=com.docker.stack.namespace=$stack")"
     if [ -n "$left" ]; then say "left behind: $left"; rc=1; fi
     if [ $rc -eq 0 ]; then say "PASS"; else say "FAIL"; for s in replay learner monitor actor; do docker service logs --tail 15 "${stack}_$s" 2>&1 | sed "s/^/  /"; done; print_failures; fi
+    forget_failures
     exit $rc
 }
 trap finish EXIT

@@ -175,9 +175,11 @@ impl ShmConfig {
 /// Request user header: who sent the batch, readable even when the payload is garbage.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mapless.shm.v1.BatchHeader")]
+#[type_name("mapless.shm.v2.BatchHeader")]
 pub struct BatchHeader {
     sequence: u64,
+    /// The sending connection's random nonce, echoed in its answer ([`WireAck`]).
+    writer: u64,
     actor_id_len: u32,
     _reserved: u32,
     actor_id: [u8; MAX_ACTOR_ID_BYTES],
@@ -185,13 +187,15 @@ pub struct BatchHeader {
 
 impl Default for BatchHeader {
     fn default() -> Self {
-        BatchHeader { sequence: 0, actor_id_len: 0, _reserved: 0, actor_id: [0; MAX_ACTOR_ID_BYTES] }
+        BatchHeader { sequence: 0, writer: 0, actor_id_len: 0, _reserved: 0, actor_id: [0; MAX_ACTOR_ID_BYTES] }
     }
 }
 
 impl BatchHeader {
-    pub fn new(actor_id: &str, sequence: u64) -> BatchHeader {
-        let mut h = BatchHeader { sequence, actor_id_len: actor_id.len() as u32, ..BatchHeader::default() };
+    /// The header of `actor_id`'s batch `sequence`, sent on the connection whose nonce is
+    /// `writer`.
+    pub fn new(actor_id: &str, sequence: u64, writer: u64) -> BatchHeader {
+        let mut h = BatchHeader { sequence, writer, actor_id_len: actor_id.len() as u32, ..BatchHeader::default() };
         h.actor_id[..actor_id.len()].copy_from_slice(actor_id.as_bytes());
         h
     }
@@ -201,12 +205,17 @@ impl BatchHeader {
     /// the headers a buggy or hostile writer could send.
     #[doc(hidden)]
     pub fn from_raw_parts(sequence: u64, actor_id_len: u32, actor_id: [u8; MAX_ACTOR_ID_BYTES]) -> BatchHeader {
-        BatchHeader { sequence, actor_id_len, _reserved: 0, actor_id }
+        BatchHeader { sequence, writer: 0, actor_id_len, _reserved: 0, actor_id }
     }
 
     /// The sender's batch sequence.
     pub fn sequence(&self) -> u64 {
         self.sequence
+    }
+
+    /// The sending connection's nonce, which every answer to this batch must echo.
+    pub fn writer(&self) -> u64 {
+        self.writer
     }
 
     /// The sender's actor id, checked.
@@ -224,9 +233,11 @@ const ACK_MESSAGE_BYTES: usize = 244;
 /// What the service answered; `code` is one of the `CODE_*` values.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mapless.shm.v1.Ack")]
+#[type_name("mapless.shm.v2.Ack")]
 pub struct WireAck {
     sequence: u64,
+    /// The nonce of the connection whose batch this answers ([`BatchHeader::writer`]).
+    writer: u64,
     table_size: u64,
     accepted_rows: u32,
     code: u32,
@@ -248,7 +259,7 @@ pub const CODE_UNAVAILABLE: u32 = 4;
 impl WireAck {
     pub fn stored(ack: &InsertAck) -> WireAck {
         let code = if ack.duplicate { CODE_DUPLICATE } else { CODE_STORED };
-        WireAck { sequence: ack.sequence, table_size: ack.table_size, accepted_rows: ack.accepted_rows, code, message_len: 0, message: [0; ACK_MESSAGE_BYTES] }
+        WireAck { sequence: ack.sequence, writer: 0, table_size: ack.table_size, accepted_rows: ack.accepted_rows, code, message_len: 0, message: [0; ACK_MESSAGE_BYTES] }
     }
 
     pub fn failed(sequence: u64, code: u32, why: &str) -> WireAck {
@@ -259,7 +270,14 @@ impl WireAck {
         }
         let mut message = [0; ACK_MESSAGE_BYTES];
         message[..n].copy_from_slice(&why.as_bytes()[..n]);
-        WireAck { sequence, table_size: 0, accepted_rows: 0, code, message_len: n as u32, message }
+        WireAck { sequence, writer: 0, table_size: 0, accepted_rows: 0, code, message_len: n as u32, message }
+    }
+
+    /// This answer, addressed to the connection whose nonce is `writer`: the service answers
+    /// every request with the nonce of its header ([`BatchHeader::writer`]).
+    pub fn for_writer(mut self, writer: u64) -> WireAck {
+        self.writer = writer;
+        self
     }
 
     /// The batch this answers.
@@ -367,6 +385,23 @@ struct Conn {
     node: Node<ClientSvc>,
     /// Batches this connection may have in flight: min(config, service).
     window: usize,
+    /// Random, per connection: every request carries it and every answer must echo it.
+    /// iceoryx2 routes a response by the server's connection slot, channel and request id;
+    /// a killed writer's slot may pass to a new client whose request ids and sequences also
+    /// start from the beginning, so an answer the ingest still sends to a request of the dead
+    /// writer can reach the new one's pending request of the same number. Without the nonce
+    /// that stranger's "stored" would be taken for a batch the ingest never received.
+    nonce: u64,
+}
+
+/// A random nonce, never 0 (the value of a header made by `BatchHeader::from_raw_parts`).
+fn connection_nonce() -> u64 {
+    use std::hash::BuildHasher;
+    static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+    // RandomState's keys are random per process (and vary per call within one).
+    std::collections::hash_map::RandomState::new().hash_one((std::process::id(), now, n)).max(1)
 }
 
 impl Conn {
@@ -390,7 +425,7 @@ impl Conn {
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .create()
             .map_err(|e| closed(&svc, format!("cannot create the client port: {e:?}")))?;
-        Ok(Conn { client, service, node, window })
+        Ok(Conn { client, service, node, window, nonce: connection_nonce() })
     }
 
     /// Are the servers the service lists alive? (A killed server stays listed until someone
@@ -615,7 +650,7 @@ impl ShmWriter {
         for e in self.window.iter_mut().filter(|e| e.pending.is_none() && e.answer.is_none()) {
             let request = match conn.client.loan_slice_uninit(e.bytes.len()) {
                 Ok(mut r) => {
-                    *r.user_header_mut() = BatchHeader::new(&self.actor_id, e.sequence);
+                    *r.user_header_mut() = BatchHeader::new(&self.actor_id, e.sequence, conn.nonce);
                     r.write_from_slice(&e.bytes)
                 }
                 Err(err) => {
@@ -643,6 +678,7 @@ impl ShmWriter {
     /// Moves answered batches out of the window into `ready`, in window order.
     fn collect(&mut self) {
         let mut broken = None;
+        let nonce = self.conn.as_ref().map_or(0, |c| c.nonce);
         for e in self.window.iter_mut() {
             let Some(p) = e.pending.as_ref() else { continue };
             // Read the connection state before receiving: an answer sent just before the
@@ -653,6 +689,12 @@ impl ShmWriter {
                     let a = *r.payload();
                     drop(r);
                     e.pending = None;
+                    if a.writer != nonce {
+                        // Another connection's answer (see `Conn::nonce`): says nothing of this
+                        // batch. Reconnecting resends it; the table drops it if it was stored.
+                        broken = Some(Broken::Unavailable(format!("protocol error: the answer for batch {} was addressed to another shm writer connection", e.sequence)));
+                        continue;
+                    }
                     if a.sequence != e.sequence {
                         broken = Some(Broken::Unavailable(format!("protocol error: ack for sequence {} answers batch {}", a.sequence, e.sequence)));
                         continue;

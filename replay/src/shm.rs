@@ -42,6 +42,14 @@
 //! second one is refused ([`ShmWriter::poll_acks`](mapless_net::shm::ShmWriter::poll_acks) fails with `ShmError::BadRequest`)
 //! until the first disconnects or dies.
 //!
+//! Every answer echoes the nonce of its request's header (one per writer connection), and a
+//! writer takes only answers that carry its own. iceoryx2 routes a response by the server's
+//! connection slot, channel and request id; once a killed writer's slot passes to a new writer,
+//! whose request ids and batch sequences also start from the beginning, an answer the ingest
+//! still gives a request of the dead writer would otherwise be taken for the new one's batch of
+//! the same number, and that batch would never be resent (seen once in the compose drill: three
+//! batches acknowledged and never stored).
+//!
 //! # Dead writers and stale resources
 //!
 //! iceoryx2 keeps a liveness token per node; a process killed with SIGKILL leaves its node
@@ -529,7 +537,10 @@ pub(crate) fn decode_payload(actor: &str, sequence: u64, payload: Bytes) -> Resu
     Ok(batch)
 }
 
+/// Answers `request`, echoing its writer's nonce: a writer takes only answers that carry its
+/// own (see `mapless_net::shm::BatchHeader::writer`).
 fn respond(request: &InsertRequest, ack: WireAck) {
+    let ack = ack.for_writer(request.user_header().writer());
     if let Err(e) = request.send_copy(ack) {
         // The writer went away; it resends after reconnecting.
         tracing::debug!(error = ?e, sequence = ack.sequence(), "cannot deliver a shm ack");

@@ -465,6 +465,65 @@ fn second_writer_for_an_actor_is_refused_until_the_first_disconnects() {
     ingest.stop();
 }
 
+/// iceoryx2 routes an answer by the server's connection slot, channel and request id, all of
+/// which a killed writer's successor can reuse (and both number their batches from 1): the
+/// ingest's late answer to the dead writer's batch 1 could reach the new writer's batch 1. A
+/// writer takes only answers that echo its connection's nonce; another one's "stored" breaks
+/// the connection, and reconnecting resends the batch.
+#[test]
+fn an_answer_addressed_to_another_writer_connection_is_refused_and_the_batch_resent() {
+    use iceoryx2::prelude::*;
+    use mapless_net::shm::{WireAck, rr_builder};
+    use mapless_proto::v1::InsertAck;
+    let _g = serial();
+    let (t, c) = (table(), cfg("foreign"));
+    // A stand-in server with the ingest's service settings answers batch 1 with a "stored"
+    // addressed to another connection.
+    let node = NodeBuilder::new().config(&c.iceoryx2_config()).create::<ipc::Service>().unwrap();
+    let name = ServiceName::new(&c.service_name()).unwrap();
+    let service = rr_builder(&node, &name)
+        .enable_safe_overflow_for_requests(false)
+        .max_active_requests_per_client(c.max_in_flight)
+        .max_servers(1)
+        .max_clients(c.max_writers)
+        .max_nodes(c.max_writers + 8)
+        .open_or_create()
+        .unwrap();
+    let server = service.server_builder().create().unwrap();
+    let mut w = ShmWriter::connect(&c, "f").unwrap();
+    w.send(&synthetic_batch("f", 1, 10, OBS)).unwrap();
+    let deadline = in_secs(20);
+    let request = loop {
+        if let Some(r) = server.receive().unwrap() {
+            break r;
+        }
+        assert!(Instant::now() < deadline, "the stand-in server never received batch 1");
+        std::thread::sleep(Duration::from_millis(1));
+    };
+    let header = *request.user_header();
+    assert_eq!(header.sequence(), 1);
+    assert_ne!(header.writer(), 0, "a writer's header carries its connection's nonce");
+    let ack = InsertAck { actor_id: "f".into(), sequence: 1, accepted_rows: 10, duplicate: false, table_size: 10 };
+    request.send_copy(WireAck::stored(&ack).for_writer(header.writer() ^ 1)).unwrap();
+    let e = loop {
+        match w.poll_acks() {
+            Ok(acks) => assert!(acks.is_empty(), "took another connection's answer: {acks:?}"),
+            Err(e) => break e,
+        }
+        assert!(Instant::now() < deadline, "the writer never noticed the foreign answer");
+        std::thread::sleep(Duration::from_millis(1));
+    };
+    assert!(matches!(&e, ShmError::Closed(m) if m.contains("addressed to another shm writer connection")), "{e}");
+    assert_eq!(w.unacked(), 1, "batch 1 stays in the window");
+    drop((request, server, service, node));
+    // The real ingest gets it on the resend, once.
+    let ingest = ShmIngest::spawn(Arc::clone(&t), c.clone()).unwrap();
+    w.reconnect().unwrap();
+    assert_eq!(stored(&w.wait_acks(in_secs(20)).unwrap()), [(1, false)]);
+    assert_eq!((t.size(), t.actors()["f"].batches), (10, 1));
+    ingest.stop();
+}
+
 #[test]
 fn insert_blocked_by_the_rate_limiter_delays_the_ack_without_dropping_it() {
     let _g = serial();
