@@ -7,8 +7,8 @@
 //!   ShmWriter (iceoryx2 client) ── request ───────► ShmIngest thread (iceoryx2 server)
 //!     window of unacked batches    payload: [u8] =    decode once ─► Table::insert(deadline)
 //!     (kept for resend)            prost TransitionBatch     │
-//!                                  user header: actor id, sequence
-//!                 ◄── response: WireAck (one per request) ───┘
+//!                                  user header: actor id, sequence, writer nonce
+//!                 ◄── WireAck (per request, nonce echoed) ───┘
 //!                                                   janitor thread: Node::try_cleanup_dead_nodes
 //! ```
 //!
