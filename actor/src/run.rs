@@ -63,11 +63,16 @@ pub struct ExplorationSettings {
     /// Noise added to deterministic policies (DDPG: OU, TD3: Gaussian), handed over from the
     /// algorithm's config (`learner.{ddpg,td3}.exploration`); absent for SAC and evaluation.
     pub noise: Option<ExplorationNoise>,
+    /// Share of transitions stored as their mirror image (left ↔ right, `EnvConfig::mirror_obs`),
+    /// each drawn on its own; 0: none, and no random number is spent on it. Handed over from
+    /// `actors.mirror_share`.
+    #[serde(default)]
+    pub mirror_share: f64,
 }
 
 impl Default for ExplorationSettings {
     fn default() -> Self {
-        ExplorationSettings { warmup_steps: 1_000, noise: None }
+        ExplorationSettings { warmup_steps: 1_000, noise: None, mirror_share: 0.0 }
     }
 }
 
@@ -138,6 +143,9 @@ impl ActorConfig {
         if self.max_in_flight == 0 {
             return Err("max_in_flight must be >= 1".into());
         }
+        if !(0.0..=1.0).contains(&self.exploration.mirror_share) {
+            return Err(format!("exploration.mirror_share must be a share in [0, 1], got {}", self.exploration.mirror_share));
+        }
         Ok(())
     }
 }
@@ -151,6 +159,8 @@ pub struct ActorReport {
     pub policy_version: u64,
     pub policies_loaded: u64,
     pub bad_snapshots: u64,
+    /// Transitions stored as their mirror image (`exploration.mirror_share`).
+    pub mirrored_rows: u64,
     pub unacked_at_exit: bool,
     pub sink: InsertStats,
 }
@@ -250,6 +260,11 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let mut noise = NoiseProcess::new(cfg.exploration.noise, n, 2);
     let mut obs = vec![0.0f32; n * d];
     let mut actions = vec![0.0f32; n * 2];
+    // Mirror images (`exploration.mirror_share`), drawn from their own stream so that the
+    // policy's samples stay those of the seed.
+    let mirror_share = cfg.exploration.mirror_share;
+    let mut mirror_rng = Pcg64::seed_from_u64(seed ^ 0x4D49_5252_4F52);
+    let (mut m_obs, mut m_next) = (vec![0.0f32; d], vec![0.0f32; d]);
     let mut step_idx: Vec<u32> = vec![0; n];
     let mut episode_ids: Vec<u64> = vec![0; n];
     let mut out = VecStep::default();
@@ -303,11 +318,21 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         }
         envs.step(&actions, &mut out)?;
         for i in 0..n {
+            let (o, a, o2) = (&obs[i * d..(i + 1) * d], [actions[2 * i], actions[2 * i + 1]], &out.next_obs[i * d..(i + 1) * d]);
+            let mirrored = mirror_share > 0.0 && mirror_rng.random::<f64>() < mirror_share;
+            let (o, a, o2) = if mirrored {
+                cfg.env.mirror_obs(o, &mut m_obs);
+                cfg.env.mirror_obs(o2, &mut m_next);
+                report.mirrored_rows += 1;
+                (&m_obs[..], EnvConfig::mirror_action(a), &m_next[..])
+            } else {
+                (o, a, o2)
+            };
             builder.push(Transition {
-                obs: &obs[i * d..(i + 1) * d],
-                action: &actions[2 * i..2 * i + 2],
+                obs: o,
+                action: &a,
                 reward: out.reward[i],
-                next_obs: &out.next_obs[i * d..(i + 1) * d],
+                next_obs: o2,
                 terminal: out.terminal[i],
                 truncated: out.truncated[i],
                 episode_id: ((i as u64) << 40) | episode_ids[i],

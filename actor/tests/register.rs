@@ -114,7 +114,7 @@ fn actor_config(dir: &Path, replay: SocketAddr) -> PathBuf {
         env,
         vehicles: 2,
         // Random actions throughout: no learner in this test (the weights address refuses).
-        exploration: ExplorationSettings { warmup_steps: u64::MAX, noise: None },
+        exploration: ExplorationSettings { warmup_steps: u64::MAX, noise: None, mirror_share: 0.0 },
         batch_rows: 16,
         max_in_flight: 8,
         replay: ReplayTarget::Grpc { uri: format!("http://{replay}") },
@@ -147,6 +147,7 @@ struct Finished {
     actor_id: String,
     rows_acked: u64,
     log: String,
+    report: serde_json::Value,
 }
 
 fn finish(mut child: Child) -> Finished {
@@ -159,7 +160,7 @@ fn finish(mut child: Child) -> Finished {
     let sink = &report["sink"];
     assert_eq!(sink["acked"], sink["batches"], "every batch acknowledged: {report}");
     assert_eq!(report["unacked_at_exit"], false, "{report}");
-    Finished { actor_id: report["actor_id"].as_str().unwrap().to_owned(), rows_acked: sink["rows"].as_u64().unwrap(), log }
+    Finished { actor_id: report["actor_id"].as_str().unwrap().to_owned(), rows_acked: sink["rows"].as_u64().unwrap(), log, report }
 }
 
 /// The slot in an actor id `actor-<slot>-<pid>-<ms>`.
@@ -263,5 +264,41 @@ fn index_auto_with_a_bad_name_fails_with_a_clear_error() {
     assert!(!output.status.success());
     assert!(log.contains("200 bytes long") && log.contains("registering actor name"), "{log}");
     assert!(!log.contains("panicked"), "{log}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `exploration.mirror_share` (`actors.mirror_share` of a run): that share of the rows goes to
+/// the replay as its mirror image (what a mirror image is: sim/tests/mirror.rs), every row
+/// still delivered once; a share outside [0, 1] is refused before anything runs.
+#[test]
+fn an_actor_stores_its_share_of_rows_mirrored() {
+    let dir = std::env::temp_dir().join(format!("mapless-actor-mirror-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let replay = Replay::start(&dir.join("replay"), EnvConfig::default().obs_dim());
+    let plain = actor_config(&dir, replay.addr);
+    let mut cfg: ActorConfig = serde_yaml::from_str(&std::fs::read_to_string(&plain).unwrap()).unwrap();
+    let config = dir.join("actor-mirror.yaml");
+    let mut delivered = BTreeMap::new();
+    for (share, name) in [(0.0, "m-none"), (0.5, "m-half"), (1.0, "m-all")] {
+        cfg.exploration.mirror_share = share;
+        std::fs::write(&config, serde_yaml::to_string(&cfg).unwrap()).unwrap();
+        let f = finish(spawn_actor(&config, name, false));
+        let mirrored = f.report["mirrored_rows"].as_u64().expect("mirrored_rows in the report");
+        match share {
+            0.0 => assert_eq!(mirrored, 0),
+            1.0 => assert_eq!(mirrored, STEPS),
+            // 96 draws at one half: all or none has odds of 2⁻⁹⁵.
+            _ => assert!(0 < mirrored && mirrored < STEPS, "{mirrored} of {STEPS}"),
+        }
+        delivered.insert(f.actor_id, STEPS);
+    }
+    assert_eq!(rows_by_actor(&replay.info()), delivered, "every row once, mirrored or not");
+    cfg.exploration.mirror_share = 1.5;
+    std::fs::write(&config, serde_yaml::to_string(&cfg).unwrap()).unwrap();
+    let out = spawn_actor(&config, "m-bad", false).wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && log.contains("mirror_share") && !log.contains("panicked"), "{log}");
+    replay.stop();
     let _ = std::fs::remove_dir_all(&dir);
 }

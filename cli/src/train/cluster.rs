@@ -130,7 +130,7 @@ impl Cluster {
             worlds_per_family: cfg.worlds_per_family,
             env: cfg.actor_env(),
             vehicles: cfg.actors.vehicles,
-            exploration: ExplorationSettings { warmup_steps: if resuming { 0 } else { cfg.actors.warmup_steps }, noise: cfg.noise() },
+            exploration: ExplorationSettings { warmup_steps: if resuming { 0 } else { cfg.actors.warmup_steps }, noise: cfg.noise(), mirror_share: cfg.actors.mirror_share },
             batch_rows: cfg.actors.batch_rows,
             max_in_flight: 8,
             replay: ReplayTarget::Shm { prefix: shm.prefix.clone(), domain: shm.domain.clone(), register: None },

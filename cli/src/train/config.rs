@@ -127,13 +127,21 @@ pub struct ActorsSettings {
     /// training did not make its policies carry better to env3 over five seeds
     /// (docs/simulator.md, "Hard starts")].
     pub hard_start_share: Option<f64>,
+    /// Share of the training transitions the actors store as their mirror image: beams read
+    /// right to left, ω_{t−1} and the turn a₂ negated, the reward as it was — a transition the
+    /// car makes in the mirror image of its world (`EnvConfig::mirror_obs`; tested against that
+    /// world in sim/tests/mirror.rs). Drawn per transition; 0: off [ours, symmetry augmentation:
+    /// a policy meets every situation and its mirror image, where the other turn clears, as
+    /// often. 0.5 in `env1-sac` (./run.sh's job), 0 in the other presets; measured over five
+    /// seeds in docs/simulator.md, "Mirror images"].
+    pub mirror_share: f64,
     // Exploration noise has one home, the algorithm's section (`learner.ddpg.exploration`,
     // `learner.td3.exploration`, with their sources); the actors are handed it. SAC samples.
 }
 
 impl Default for ActorsSettings {
     fn default() -> Self {
-        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, start_clearance_m: None, hard_start_share: None }
+        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, start_clearance_m: None, hard_start_share: None, mirror_share: 0.0 }
     }
 }
 
@@ -293,6 +301,9 @@ impl TrainConfig {
             && !(0.0..=1.0).contains(&s)
         {
             bail!("actors.hard_start_share must be a share in [0, 1], not {s}");
+        }
+        if !(0.0..=1.0).contains(&self.actors.mirror_share) {
+            bail!("actors.mirror_share must be a share in [0, 1], not {}", self.actors.mirror_share);
         }
         if self.stop.window == 0 {
             bail!("stop.window must be >= 1");
@@ -612,9 +623,11 @@ mod tests {
 
         let actor: ActorConfig = serde_yaml::from_str(&read("actor.yaml")).unwrap();
         actor.validate().expect("actor.yaml passes the actor's checks");
-        assert_eq!(yaml(&actor.env), yaml(&preset.env), "actor.yaml: the preset's environment");
+        // What `mapless train`'s actors are handed: the training starts (`actors.*`) included.
+        assert_eq!(yaml(&actor.env), yaml(&preset.actor_env()), "actor.yaml: the preset's environment as its actors train in it");
         assert_eq!(actor.map, preset.map);
         assert_eq!(yaml(&actor.exploration.noise), yaml(&preset.noise()));
+        assert_eq!(actor.exploration.mirror_share, preset.actors.mirror_share, "actor.yaml: the preset's mirror images");
         assert!(matches!(&actor.replay, ReplayTarget::Grpc { uri } if uri.starts_with("https://")));
         assert!(actor.weights.starts_with("https://") && actor.security.tls_ca_file.is_some());
         assert_eq!(actor.security.token_file, roles.actor, "actors hold the actor's token only");
@@ -888,5 +901,15 @@ mod tests {
         }
         let err = load_config(&train_args("env1-sac", &["env.episode.hard_start_within_m=0"])).unwrap_err();
         assert!(format!("{err:#}").contains("hard_start_within_m"), "{err:#}");
+    }
+
+    #[test]
+    fn mirror_share_is_a_share() {
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.mirror_share=0.5"])).unwrap();
+        assert_eq!(cfg.actors.mirror_share, 0.5);
+        for bad in ["-0.1", "1.5", ".nan"] {
+            let err = load_config(&train_args("env1-sac", &[&format!("actors.mirror_share={bad}")])).unwrap_err();
+            assert!(format!("{err:#}").contains("actors.mirror_share"), "{bad}: {err:#}");
+        }
     }
 }
