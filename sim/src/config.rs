@@ -102,11 +102,25 @@ impl SensorConfig {
         let n = self.beams;
         if n == 1 {
             self.fov_rad
-        } else if self.fov_rad >= std::f64::consts::TAU - 1e-9 {
+        } else if self.is_full_circle() {
             self.fov_rad / n as f64
         } else {
             self.fov_rad / (n - 1) as f64
         }
+    }
+
+    /// Whether the field of view is a full circle (fov ≥ 2π), where the last beam does not
+    /// repeat the first and beam 0 looks straight back.
+    pub fn is_full_circle(&self) -> bool {
+        self.fov_rad >= std::f64::consts::TAU - 1e-9
+    }
+
+    /// The beam that sees beam `k`'s direction in a mirror (left ↔ right, the heading's line
+    /// the axis): beam angles are symmetric about the heading, so it is `n − 1 − k`, or
+    /// `(n − k) mod n` for a full circle (whose beam 0 looks straight back).
+    pub fn mirrored_beam(&self, k: usize) -> usize {
+        let n = self.beams;
+        if self.is_full_circle() { (n - k) % n } else { n - 1 - k }
     }
 
     /// Every ray's angle relative to the heading, ascending: `rays_per_beam` per beam, beam by
@@ -276,24 +290,16 @@ impl EnvConfig {
         2 * self.sensor.beams + 3
     }
 
-    /// The beam that sees beam `k`'s direction in a mirror (left ↔ right, the heading's line
-    /// the axis): beam angles are symmetric about the heading, so it is `n − 1 − k`, or
-    /// `(n − k) mod n` for a full circle (whose beam 0 looks straight back).
-    pub fn mirrored_beam(&self, k: usize) -> usize {
-        let n = self.sensor.beams;
-        if self.sensor.fov_rad >= std::f64::consts::TAU - 1e-9 { (n - k) % n } else { n - 1 - k }
-    }
-
     /// The observation the car would read in the mirror image of its world, at the mirror
     /// image of its pose, after the mirror image of its history: each beam's range moves to
-    /// its [`EnvConfig::mirrored_beam`], ω_{t−1} changes sign, v_{t−1} and R_{t−1} stay (eq. (1)
+    /// its [`SensorConfig::mirrored_beam`], ω_{t−1} changes sign, v_{t−1} and R_{t−1} stay (eq. (1)
     /// and (2) depend on ω only through ω², and the mirror image of a map is a map).
     /// `obs` and `out` are `obs_dim` long.
     pub fn mirror_obs(&self, obs: &[f32], out: &mut [f32]) {
         let n = self.sensor.beams;
         debug_assert!(obs.len() == self.obs_dim() && out.len() == obs.len());
         for k in 0..n {
-            let m = self.mirrored_beam(k);
+            let m = self.sensor.mirrored_beam(k);
             out[m] = obs[k];
             out[n + m] = obs[n + k];
         }

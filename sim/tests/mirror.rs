@@ -83,7 +83,7 @@ fn the_mirror_maps_each_beam_to_the_one_at_the_opposite_angle() {
         cfg.sensor.fov_rad = fov;
         let angles = cfg.sensor.beam_angles_rad();
         for k in 0..beams {
-            let m = cfg.mirrored_beam(k);
+            let m = cfg.sensor.mirrored_beam(k);
             let diff = (angles[m] + angles[k]).rem_euclid(std::f64::consts::TAU);
             assert!(diff < 1e-9 || std::f64::consts::TAU - diff < 1e-9, "{beams} beams over {fov}: beam {k} at {} mirrored to {m} at {}", angles[k], angles[m]);
         }
