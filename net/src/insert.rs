@@ -310,6 +310,9 @@ pub struct InsertClient {
     endpoint: GrpcEndpoint,
     /// Sent and not yet acknowledged, oldest first (resent after a reconnect).
     window: VecDeque<Arc<TransitionBatch>>,
+    /// How many of the window's newest batches are not on the current stream yet: its
+    /// channel was full when they came (a stream opened later carries the whole window).
+    unsent: usize,
     max_in_flight: usize,
     stream: Option<Stream>,
     stats: InsertStats,
@@ -324,7 +327,7 @@ impl InsertClient {
     /// `rt` must drive its own IO (a multi-thread runtime: `Handle::block_on` on a
     /// current-thread runtime cannot), and `send`/`flush` must not be called from inside it.
     pub fn new(rt: Handle, endpoint: GrpcEndpoint, max_in_flight: usize) -> InsertClient {
-        InsertClient { rt, endpoint, window: VecDeque::new(), max_in_flight: max_in_flight.max(1), stream: None, stats: InsertStats::default(), backoff: Duration::ZERO }
+        InsertClient { rt, endpoint, window: VecDeque::new(), unsent: 0, max_in_flight: max_in_flight.max(1), stream: None, stats: InsertStats::default(), backoff: Duration::ZERO }
     }
 
     async fn open(endpoint: &GrpcEndpoint, window: &VecDeque<Arc<TransitionBatch>>, depth: usize) -> Result<Stream, NetError> {
@@ -382,6 +385,7 @@ impl InsertClient {
                         self.stats.reconnects += 1;
                     }
                     self.stream = Some(s);
+                    self.unsent = 0;
                 }
                 Err(e) => self.note_error(&e),
             }
@@ -418,35 +422,52 @@ impl InsertClient {
         &self.stats
     }
 
+    /// Batches handed to `send` that are not on the stream yet (its channel was full); the
+    /// next `send` or [`InsertClient::flush`] puts them on it, in order.
+    pub fn held(&self) -> usize {
+        self.unsent
+    }
+
+    /// Puts the window's unsent batches on the open stream, oldest first, as far as its
+    /// channel takes them; a closed channel drops the stream (a new one carries the window).
+    fn push_unsent(&mut self) {
+        // Acks and refusals take the oldest batches, which are on the stream; never more.
+        self.unsent = self.unsent.min(self.window.len());
+        while self.unsent > 0 {
+            let Some(s) = self.stream.as_ref() else { return };
+            let b = &self.window[self.window.len() - self.unsent];
+            match s.tx.try_send((**b).clone()) {
+                Ok(()) => self.unsent -= 1,
+                Err(mpsc::error::TrySendError::Full(_)) => return,
+                Err(mpsc::error::TrySendError::Closed(_)) => {
+                    self.stream = None;
+                    return;
+                }
+            }
+        }
+    }
+
     /// Takes `batch` (its sequence must be above the previous one's) and sends it, waiting
-    /// while the window is full or the replay is unreachable. Returns once the batch is held
-    /// for delivery; `Err` only when `stop` turned true first.
+    /// while the window is full or the replay is unreachable. Returns once the batch is on the
+    /// stream; `Err` only when `stop` turned true first, with the batch kept for
+    /// [`InsertClient::flush`] (in the window, and [`InsertClient::held`] if it is not on the
+    /// stream yet).
     pub fn send(&mut self, batch: TransitionBatch, stop: &AtomicBool) -> Result<(), Stopped> {
         self.stats.batches += 1;
         self.stats.rows += u64::from(batch.num_rows);
-        let batch = Arc::new(batch);
-        self.window.push_back(Arc::clone(&batch));
-        // Is the new batch on the current stream? (A freshly opened stream carries the whole
-        // window, this batch included.)
-        let mut on_stream = false;
+        self.window.push_back(Arc::new(batch));
+        self.unsent += 1;
         loop {
             if self.stream.is_none() {
+                // A freshly opened stream carries the whole window, this batch included.
                 self.ensure_stream(stop)?;
-                on_stream = true;
             }
-            if !on_stream {
-                let s = self.stream.as_ref().expect("stream is open");
-                match s.tx.try_send((*batch).clone()) {
-                    Ok(()) => on_stream = true,
-                    Err(mpsc::error::TrySendError::Full(_)) => {}
-                    Err(mpsc::error::TrySendError::Closed(_)) => {
-                        self.stream = None;
-                        continue;
-                    }
-                }
+            self.push_unsent();
+            if self.stream.is_none() {
+                continue;
             }
             // Take the acks that are there; wait only while the window is over its bound.
-            let must_wait = !on_stream || self.window.len() > self.max_in_flight;
+            let must_wait = self.unsent > 0 || self.window.len() > self.max_in_flight;
             match self.next_ack(if must_wait { Duration::from_millis(50) } else { Duration::ZERO }) {
                 Ok(true) => continue,
                 Ok(false) if !must_wait => return Ok(()),
@@ -466,13 +487,21 @@ impl InsertClient {
             if self.stream.is_none() {
                 // Short attempts only: this runs at shutdown.
                 match self.rt.block_on(Self::open(&self.endpoint, &self.window, self.max_in_flight)) {
-                    Ok(s) => self.stream = Some(s),
+                    Ok(s) => {
+                        self.stream = Some(s);
+                        self.unsent = 0;
+                    }
                     Err(e) => {
                         self.note_error(&e);
                         std::thread::sleep(Duration::from_millis(100));
                         continue;
                     }
                 }
+            }
+            // Batches that `send` could not put on the stream before it was stopped.
+            self.push_unsent();
+            if self.stream.is_none() {
+                continue;
             }
             let left = deadline.saturating_duration_since(Instant::now());
             if let Err(e) = self.next_ack(left.min(Duration::from_millis(200))) {
