@@ -400,7 +400,25 @@ struct RunResult {
     episodes_cap: Option<u64>,
     samples_per_insert: Option<f64>,
     batch_size: usize,
+    /// What the run's preset adds to the paper's set-up (`actors.start_clearance_m`,
+    /// `actors.mirror_share`, `stop.min_episodes`), as the page's words; empty for none.
+    aids: Vec<String>,
     env3: Option<EvalSummary>,
+}
+
+/// The training aids a run's config holds beyond the paper's set-up, each as the page says it.
+fn training_aids(cfg: &crate::train::config::TrainConfig) -> Vec<String> {
+    let mut aids = Vec::new();
+    if let Some(c) = cfg.actors.start_clearance_m {
+        aids.push(format!("training starts {c} m from obstacles (evaluations {} m; `actors.start_clearance_m`)", cfg.env.episode.start_clearance_m));
+    }
+    if cfg.actors.mirror_share > 0.0 {
+        aids.push(format!("{} % of its transitions stored as their mirror image (`actors.mirror_share`)", cfg.actors.mirror_share * 100.0));
+    }
+    if let Some(k) = cfg.stop.min_episodes {
+        aids.push(format!("its criteria judged from episode {k} on (`stop.min_episodes`)"));
+    }
+    aids
 }
 
 impl RunResult {
@@ -423,6 +441,7 @@ fn collect(runs: &Path, seeds: u32, e: &Experiment) -> Vec<RunResult> {
                 episodes_cap: cfg.stop.episodes,
                 samples_per_insert: cfg.replay.rate_limiter.samples_per_insert,
                 batch_size: cfg.learner.batch_size,
+                aids: training_aids(&cfg),
                 env3: read_env3(&env3_dir(&dir)),
             })
         })
@@ -655,6 +674,20 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
         page,
         "- **Inferred parameters.** Where the paper is silent (network width, exploration noise, the update-to-data ratio, the EQS reading) the presets say what we chose and why; these runs took {ratios} (the paper: every step)."
     );
+    let aided: Vec<String> = results
+        .iter()
+        .filter_map(|(e, runs)| {
+            let aids = distinct(runs.iter().filter(|r| !r.aids.is_empty()).map(|r| r.aids.join(", ")));
+            (aids != "–").then(|| format!("{}: {aids}", e.preset))
+        })
+        .collect();
+    if !aided.is_empty() {
+        let _ = writeln!(
+            page,
+            "- **Beyond the paper, in training only.** Reward, hyperparameters and the evaluation stay the paper's; in training, on points its text leaves open, these presets add (each preset's file says why and what it was measured against): {}.",
+            aided.join("; ")
+        );
+    }
     let _ = writeln!(
         page,
         "- **Evaluation.** The paper scores one trajectory per agent; ours average {eval_eps} deterministic episodes per run from random starts, so a lucky or unlucky start weighs less."
@@ -729,6 +762,20 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_page_names_what_a_preset_adds_in_training() {
+        use crate::train::config::{preset_config, preset_with_sets};
+        let aids = training_aids(&preset_config("env1-sac").unwrap());
+        assert_eq!(aids.len(), 3, "{aids:?}");
+        assert!(aids[0].starts_with("training starts 0.1 m from obstacles (evaluations 0.5 m"), "{aids:?}");
+        assert!(aids[1].starts_with("50 % of its transitions stored as their mirror image"), "{aids:?}");
+        assert!(aids[2].contains("from episode 1000 on"), "{aids:?}");
+        // The paper's other presets add none; a --set that adds one is named.
+        assert!(training_aids(&preset_config("env2-td3").unwrap()).is_empty());
+        let set = training_aids(&preset_with_sets("env2-td3", &["actors.mirror_share=0.25".into()]).unwrap());
+        assert_eq!(set, ["25 % of its transitions stored as their mirror image (`actors.mirror_share`)"]);
+    }
 
     #[test]
     fn stat_is_mean_and_sample_std_over_finite_values() {
