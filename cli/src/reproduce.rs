@@ -677,14 +677,14 @@ fn report(args: &ReproduceArgs, root: &Path, experiments: &[Experiment]) -> Resu
     let aided: Vec<String> = results
         .iter()
         .filter_map(|(e, runs)| {
-            let aids = distinct(runs.iter().filter(|r| !r.aids.is_empty()).map(|r| r.aids.join(", ")));
-            (aids != "–").then(|| format!("{}: {aids}", e.preset))
+            let per_run: Vec<String> = runs.iter().filter(|r| !r.aids.is_empty()).map(|r| r.aids.join(", ")).collect();
+            (!per_run.is_empty()).then(|| format!("{}: {}", e.preset, distinct(per_run.into_iter())))
         })
         .collect();
     if !aided.is_empty() {
         let _ = writeln!(
             page,
-            "- **Beyond the paper, in training only.** Reward, hyperparameters and the evaluation stay the paper's; in training, on points its text leaves open, these presets add (each preset's file says why and what it was measured against): {}.",
+            "- **Beyond the paper, in training only.** Reward, hyperparameters and the evaluation stay the paper's; in training, on points its text leaves open, these runs add (a preset that holds one says why and what it was measured against; one set by `--set` is named in the first line): {}.",
             aided.join("; ")
         );
     }

@@ -369,6 +369,13 @@ impl InsertClient {
         }
     }
 
+    /// Makes `s` the current stream. [`InsertClient::open`] put the whole window on it, so no
+    /// batch is left unsent.
+    fn attach(&mut self, s: Stream) {
+        self.stream = Some(s);
+        self.unsent = 0;
+    }
+
     /// Opens a stream if there is none (resending the window), with backoff until `stop`.
     fn ensure_stream(&mut self, stop: &AtomicBool) -> Result<(), Stopped> {
         while self.stream.is_none() {
@@ -384,8 +391,7 @@ impl InsertClient {
                     if self.stats.last_error.is_some() {
                         self.stats.reconnects += 1;
                     }
-                    self.stream = Some(s);
-                    self.unsent = 0;
+                    self.attach(s);
                 }
                 Err(e) => self.note_error(&e),
             }
@@ -487,10 +493,7 @@ impl InsertClient {
             if self.stream.is_none() {
                 // Short attempts only: this runs at shutdown.
                 match self.rt.block_on(Self::open(&self.endpoint, &self.window, self.max_in_flight)) {
-                    Ok(s) => {
-                        self.stream = Some(s);
-                        self.unsent = 0;
-                    }
+                    Ok(s) => self.attach(s),
                     Err(e) => {
                         self.note_error(&e);
                         std::thread::sleep(Duration::from_millis(100));

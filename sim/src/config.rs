@@ -144,9 +144,9 @@ pub struct RewardBand {
     pub value: f64,
 }
 
-/// R = w_r r² + w_v v² − w_ω ω² + Σ bands (+ `collision` on a step that ends in one), r the
-/// smallest range reading (metres), v and ω the commanded action (m/s, rad/s). Eq. (1) and
-/// eq. (2) are presets.
+/// R = w_r r² + w_v v² − w_ω ω² + Σ bands (+ `collision` on a step that ends in one, +
+/// `novelty` on a step that enters a cell the episode has not visited), r the smallest range
+/// reading (metres), v and ω the commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct RewardConfig {
@@ -161,6 +161,13 @@ pub struct RewardConfig {
     /// Added to the reward of a step that ends in a collision, ≤ 0 [ours, beyond the paper
     /// (issue 18): 0 in eq. 1 and eq. 2, where a collision costs only the value it ends].
     pub collision: f64,
+    /// Added to the reward of a step whose pose enters an EQS cell (`exploration.cell_area_m2`)
+    /// the episode has not visited before, ≥ 0 [ours, beyond the paper (issue 18): 0 in eq. 1
+    /// and eq. 2. A count-based novelty bonus (the cells, not the EQS rings, so the metric
+    /// itself is not what is paid): eq. (1) pays a car as much for a lap of one room's island as
+    /// for a tour of the building]. At most one cell per step at v_max·dt ≤ one cell side, so
+    /// it adds at most `novelty`·v_max·dt·√2/side per step on average (0.35 at 10 and 2 m cells).
+    pub novelty: f64,
 }
 
 impl Default for RewardConfig {
@@ -172,7 +179,7 @@ impl Default for RewardConfig {
 impl RewardConfig {
     /// Paper eq. (1): exploration.
     pub fn exploration() -> Self {
-        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0 }
+        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0 }
     }
     /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
     pub fn search_and_rescue() -> Self {
@@ -317,7 +324,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 18] = [
+        let checks: [(bool, &str); 19] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -336,6 +343,7 @@ impl EnvConfig {
             (self.exploration.cell_area_m2 > 0.0, "exploration.cell_area_m2 must be > 0"),
             (self.exploration.ring_width_m > 0.0, "exploration.ring_width_m must be > 0"),
             (self.reward.collision.is_finite() && self.reward.collision <= 0.0, "reward.collision must be a finite number ≤ 0"),
+            (self.reward.novelty.is_finite() && self.reward.novelty >= 0.0, "reward.novelty must be a finite number ≥ 0"),
         ];
         let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());
         if !all_finite {

@@ -311,9 +311,17 @@ impl Env {
         std::mem::swap(&mut self.ranges, &mut self.prev_ranges);
         self.sensor.scan(&w.sense, &self.pose, &mut self.rng, &mut self.ranges);
         let r_min = self.ranges.iter().copied().fold(f32::INFINITY, f32::min) as f64;
-        let reward = w.cfg.reward.reward(r_min, cmd.v_mps, cmd.omega_radps) + if collided { w.cfg.reward.collision } else { 0.0 };
         let shade = if w.map.in_shade(self.pose.x_m, self.pose.y_m) { vc.dt_s } else { 0.0 };
+        let cells_before = self.tracker.cells_visited();
         self.tracker.visit(self.pose.x_m, self.pose.y_m, shade);
+        let rc = &w.cfg.reward;
+        let mut reward = rc.reward(r_min, cmd.v_mps, cmd.omega_radps);
+        if collided {
+            reward += rc.collision;
+        }
+        if self.tracker.cells_visited() > cells_before {
+            reward += rc.novelty;
+        }
         if let Some(t) = &mut self.trajectory {
             t.push([self.pose.x_m, self.pose.y_m]);
         }

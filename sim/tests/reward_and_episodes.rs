@@ -145,6 +145,49 @@ fn the_collision_term_is_paid_on_the_colliding_step_only() {
 }
 
 #[test]
+fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
+    // The same drive (straight, then a full-lock circle back over its own track), with eq. (1)
+    // and with eq. (1) plus `novelty`.
+    let drive = |novelty: f64| {
+        let mut cfg = noiseless();
+        cfg.reward.novelty = novelty;
+        let w = world("box", cfg);
+        let mut env = Env::new(Arc::clone(&w), 5);
+        let mut obs = vec![0.0; w.obs_dim()];
+        env.reset_to(Pose { x_m: -6.0, y_m: 0.3, heading_rad: 0.0 }, &mut obs);
+        let mut rewards = Vec::new();
+        let mut new_cell = Vec::new();
+        for k in 0..400 {
+            let before = env.tracker().cells_visited();
+            let o = env.step(if k < 100 { [1.0, 0.0] } else { [1.0, 1.0] }, &mut obs).unwrap();
+            assert!(!o.done());
+            rewards.push(o.reward);
+            new_cell.push(env.tracker().cells_visited() > before);
+        }
+        (rewards, new_cell, env.tracker().cells_visited(), obs[w.obs_dim() - 1])
+    };
+    let (plain, entered, cells, _) = drive(0.0);
+    let (paid, entered_too, _, last_obs_reward) = drive(10.0);
+    assert_eq!(entered, entered_too, "the term does not change the drive");
+    // 5 m straight from x = −6 crosses cell edges at −4.5 and −2.5; the circle (0.76 m radius)
+    // enters a few more and then only cells it has seen.
+    let n_new = entered.iter().filter(|&&e| e).count();
+    assert_eq!(n_new as u32, cells - 1, "every cell but the start's is entered once");
+    assert!((2..cells as usize).contains(&n_new) && !entered[300..].iter().any(|&e| e), "{entered:?}");
+    for (k, ((p, q), e)) in plain.iter().zip(&paid).zip(&entered).enumerate() {
+        let want = if *e { p + 10.0 } else { *p };
+        assert!((q - want).abs() < 1e-4, "step {k}: {q} against {want}");
+    }
+    assert_eq!(last_obs_reward, *paid.last().unwrap(), "the observation's last reward includes it");
+    // A price for exploring, or no number, is refused.
+    let mut cfg = noiseless();
+    cfg.reward.novelty = -1.0;
+    assert!(cfg.validate().unwrap_err().to_string().contains("reward.novelty"));
+    cfg.reward.novelty = f64::INFINITY;
+    assert!(cfg.validate().is_err());
+}
+
+#[test]
 fn reaching_max_steps_is_truncated_not_terminal() {
     let mut cfg = noiseless();
     cfg.episode.max_steps = 25;

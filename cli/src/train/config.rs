@@ -132,8 +132,8 @@ pub struct ActorsSettings {
     /// car makes in the mirror image of its world (`EnvConfig::mirror_obs`; tested against that
     /// world in sim/tests/mirror.rs). Drawn per transition; 0: off [ours, symmetry augmentation:
     /// a policy meets every situation and its mirror image, where the other turn clears, as
-    /// often. 0.5 in `env1-sac` (./run.sh's job), 0 in the other presets; measured over five
-    /// seeds in docs/simulator.md, "Mirror images"].
+    /// often. 0.5 in `env1-sac` (./run.sh's job) and `explore-sac`, 0 in the other presets;
+    /// measured over five seeds in docs/simulator.md, "Mirror images"].
     pub mirror_share: f64,
     // Exploration noise has one home, the algorithm's section (`learner.ddpg.exploration`,
     // `learner.td3.exploration`, with their sources); the actors are handed it. SAC samples.
