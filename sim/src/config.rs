@@ -145,7 +145,8 @@ pub struct RewardBand {
 }
 
 /// R = w_r r² + w_v v² − w_ω ω² + Σ bands (+ `collision` on a step that ends in one, +
-/// `novelty` on a step that enters a cell the episode has not visited), r the smallest range
+/// `novelty` + `novelty_eqs`·ΔEQS on a step that enters a cell the episode has not visited,
+/// ΔEQS what the cell adds to the EQS), r the smallest range
 /// reading (metres), v and ω the commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
@@ -168,6 +169,13 @@ pub struct RewardConfig {
     /// for a tour of the building]. At most one cell per step at v_max·dt ≤ one cell side, so
     /// it adds at most `novelty`·v_max·dt·√2/side per step on average (0.35 at 10 and 2 m cells).
     pub novelty: f64,
+    /// Added, times what the step adds to the EQS, to the reward of a step that enters a new
+    /// cell, ≥ 0 [ours, beyond the paper (issue 18): 0 in eq. 1 and eq. 2. The metric itself
+    /// paid: over an episode the term sums to `novelty_eqs`·(EQS − 1), the start's cell not
+    /// being entered, so a cell in ring n pays n
+    /// times one next to the start, and a car that leaves the room it started in is paid for
+    /// it; `novelty` pays every cell alike].
+    pub novelty_eqs: f64,
 }
 
 impl Default for RewardConfig {
@@ -179,7 +187,7 @@ impl Default for RewardConfig {
 impl RewardConfig {
     /// Paper eq. (1): exploration.
     pub fn exploration() -> Self {
-        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0 }
+        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0, novelty_eqs: 0.0 }
     }
     /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
     pub fn search_and_rescue() -> Self {
@@ -280,6 +288,18 @@ impl Default for ExplorationConfig {
     }
 }
 
+/// What the observation carries besides the scans and the last action and reward.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct ObservationConfig {
+    /// S > 0 appends one value, min(k, S)/S ∈ [0, 1], k the steps since the car last entered an
+    /// EQS cell (`exploration.cell_area_m2`) the episode had not visited; 0 leaves it out [ours,
+    /// beyond the paper (issue 18): 0 in every paper preset. A memoryless policy cannot tell a
+    /// lap over its own track from new ground, and `explore-sac`'s policies end most env3
+    /// episodes lapping one room's island; the value is what wheel odometry knows, no map].
+    pub staleness_steps: u32,
+}
+
 /// Everything one environment needs besides its map.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Default)]
 #[serde(default, deny_unknown_fields)]
@@ -289,19 +309,21 @@ pub struct EnvConfig {
     pub reward: RewardConfig,
     pub episode: EpisodeConfig,
     pub exploration: ExplorationConfig,
+    pub observation: ObservationConfig,
 }
 
 impl EnvConfig {
-    /// Length of the observation vector: [ranges_t, ranges_{t−1}, v_{t−1}, ω_{t−1}, R_{t−1}].
+    /// Length of the observation vector: [ranges_t, ranges_{t−1}, v_{t−1}, ω_{t−1}, R_{t−1}],
+    /// then the staleness when `observation.staleness_steps` > 0.
     pub fn obs_dim(&self) -> usize {
-        2 * self.sensor.beams + 3
+        2 * self.sensor.beams + 3 + usize::from(self.observation.staleness_steps > 0)
     }
 
     /// The observation the car would read in the mirror image of its world, at the mirror
     /// image of its pose, after the mirror image of its history: each beam's range moves to
     /// its [`SensorConfig::mirrored_beam`], ω_{t−1} changes sign, v_{t−1} and R_{t−1} stay (eq. (1)
-    /// and (2) depend on ω only through ω², and the mirror image of a map is a map).
-    /// `obs` and `out` are `obs_dim` long.
+    /// and (2) depend on ω only through ω², and the mirror image of a map is a map), and so does
+    /// the staleness. `obs` and `out` are `obs_dim` long.
     pub fn mirror_obs(&self, obs: &[f32], out: &mut [f32]) {
         let n = self.sensor.beams;
         debug_assert!(obs.len() == self.obs_dim() && out.len() == obs.len());
@@ -310,9 +332,8 @@ impl EnvConfig {
             out[m] = obs[k];
             out[n + m] = obs[n + k];
         }
-        out[2 * n] = obs[2 * n];
+        out[2 * n..].copy_from_slice(&obs[2 * n..]);
         out[2 * n + 1] = -obs[2 * n + 1];
-        out[2 * n + 2] = obs[2 * n + 2];
     }
 
     /// The action (a_speed, a_turn) mirrored: the turn changes sign.
@@ -324,7 +345,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 19] = [
+        let checks: [(bool, &str); 20] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -344,6 +365,7 @@ impl EnvConfig {
             (self.exploration.ring_width_m > 0.0, "exploration.ring_width_m must be > 0"),
             (self.reward.collision.is_finite() && self.reward.collision <= 0.0, "reward.collision must be a finite number ≤ 0"),
             (self.reward.novelty.is_finite() && self.reward.novelty >= 0.0, "reward.novelty must be a finite number ≥ 0"),
+            (self.reward.novelty_eqs.is_finite() && self.reward.novelty_eqs >= 0.0, "reward.novelty_eqs must be a finite number ≥ 0"),
         ];
         let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());
         if !all_finite {

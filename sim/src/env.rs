@@ -167,6 +167,8 @@ pub struct Env {
     prev_v: f32,
     prev_omega: f32,
     prev_reward: f32,
+    /// Steps since the pose last entered a cell the episode had not visited.
+    stale_steps: u32,
     steps: u32,
     return_: f64,
     episode_id: u64,
@@ -198,6 +200,7 @@ impl Env {
             prev_v: 0.0,
             prev_omega: 0.0,
             prev_reward: 0.0,
+            stale_steps: 0,
             steps: 0,
             return_: 0.0,
             episode_id: 0,
@@ -278,6 +281,7 @@ impl Env {
         self.prev_v = 0.0;
         self.prev_omega = 0.0;
         self.prev_reward = 0.0;
+        self.stale_steps = 0;
         let w = Arc::clone(&self.world);
         self.sensor.scan(&w.sense, &pose, &mut self.rng, &mut self.ranges);
         self.prev_ranges.copy_from_slice(&self.ranges);
@@ -312,15 +316,16 @@ impl Env {
         self.sensor.scan(&w.sense, &self.pose, &mut self.rng, &mut self.ranges);
         let r_min = self.ranges.iter().copied().fold(f32::INFINITY, f32::min) as f64;
         let shade = if w.map.in_shade(self.pose.x_m, self.pose.y_m) { vc.dt_s } else { 0.0 };
-        let cells_before = self.tracker.cells_visited();
-        self.tracker.visit(self.pose.x_m, self.pose.y_m, shade);
+        let eqs_gained = self.tracker.visit(self.pose.x_m, self.pose.y_m, shade);
+        let new_cell = eqs_gained > 0;
+        self.stale_steps = if new_cell { 0 } else { self.stale_steps.saturating_add(1) };
         let rc = &w.cfg.reward;
         let mut reward = rc.reward(r_min, cmd.v_mps, cmd.omega_radps);
         if collided {
             reward += rc.collision;
         }
-        if self.tracker.cells_visited() > cells_before {
-            reward += rc.novelty;
+        if new_cell {
+            reward += rc.novelty + rc.novelty_eqs * eqs_gained as f64;
         }
         if let Some(t) = &mut self.trajectory {
             t.push([self.pose.x_m, self.pose.y_m]);
@@ -354,7 +359,7 @@ impl Env {
 
     fn write_obs(&self, obs: &mut [f32]) {
         let n = self.ranges.len();
-        debug_assert_eq!(obs.len(), 2 * n + 3);
+        debug_assert_eq!(obs.len(), self.world.cfg.obs_dim());
         let scale = 2.0 / self.world.cfg.sensor.max_range_m as f32;
         for k in 0..n {
             obs[k] = self.ranges[k] * scale - 1.0;
@@ -363,6 +368,10 @@ impl Env {
         obs[2 * n] = self.prev_v;
         obs[2 * n + 1] = self.prev_omega;
         obs[2 * n + 2] = self.prev_reward;
+        let s = self.world.cfg.observation.staleness_steps;
+        if s > 0 {
+            obs[2 * n + 3] = self.stale_steps.min(s) as f32 / s as f32;
+        }
     }
 }
 

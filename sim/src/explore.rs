@@ -78,41 +78,45 @@ impl ExplorationTracker {
     }
 
     /// Records the next pose; `shaded_dt_s` is the time to credit to shaded regions (0 if the
-    /// vehicle is not in one).
+    /// vehicle is not in one). Returns what the pose added to the EQS: 0 when its cell was
+    /// visited before, more when it enters a new one.
     #[inline]
-    pub fn visit(&mut self, x: f64, y: f64, shaded_dt_s: f64) {
+    pub fn visit(&mut self, x: f64, y: f64, shaded_dt_s: f64) -> u64 {
         self.distance_m += (x - self.last.0).hypot(y - self.last.1);
         self.last = (x, y);
         self.shaded_s += shaded_dt_s;
-        self.mark(x, y);
+        self.mark(x, y)
     }
 
     #[inline]
-    fn mark(&mut self, x: f64, y: f64) {
+    fn mark(&mut self, x: f64, y: f64) -> u64 {
         // Clamped at 0 first, so truncation is floor.
         let i = (((x - self.origin.0) / self.side_m).max(0.0) as usize).min(self.nx - 1);
         let j = (((y - self.origin.1) / self.side_m).max(0.0) as usize).min(self.ny - 1);
         let k = j * self.nx + i;
         let (word, bit) = (k / 64, 1u64 << (k % 64));
-        if self.visited[word] & bit == 0 {
-            self.visited[word] |= bit;
-            let cx = self.origin.0 + (i as f64 + 0.5) * self.side_m;
-            let cy = self.origin.1 + (j as f64 + 0.5) * self.side_m;
-            let ring = ((cx - self.start.0).hypot(cy - self.start.1) / self.ring_m).floor() as u64 + 1;
-            self.eqs += match self.inner {
-                InnerSum::Linear => ring,
-                InnerSum::Triangular => {
-                    // n·T(k) − n·T(k − 1) = n·k for the k-th cell of ring n.
-                    let idx = (ring - 1) as usize;
-                    if self.ring_cells.len() <= idx {
-                        self.ring_cells.resize(idx + 1, 0);
-                    }
-                    self.ring_cells[idx] += 1;
-                    ring * u64::from(self.ring_cells[idx])
-                }
-            };
-            self.cells += 1;
+        if self.visited[word] & bit != 0 {
+            return 0;
         }
+        self.visited[word] |= bit;
+        let cx = self.origin.0 + (i as f64 + 0.5) * self.side_m;
+        let cy = self.origin.1 + (j as f64 + 0.5) * self.side_m;
+        let ring = ((cx - self.start.0).hypot(cy - self.start.1) / self.ring_m).floor() as u64 + 1;
+        let gained = match self.inner {
+            InnerSum::Linear => ring,
+            InnerSum::Triangular => {
+                // n·T(k) − n·T(k − 1) = n·k for the k-th cell of ring n.
+                let idx = (ring - 1) as usize;
+                if self.ring_cells.len() <= idx {
+                    self.ring_cells.resize(idx + 1, 0);
+                }
+                self.ring_cells[idx] += 1;
+                ring * u64::from(self.ring_cells[idx])
+            }
+        };
+        self.eqs += gained;
+        self.cells += 1;
+        gained
     }
 
     pub fn eqs(&self) -> u64 {

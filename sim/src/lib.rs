@@ -35,7 +35,7 @@ pub mod stats;
 pub mod vehicle;
 pub mod worlds;
 
-pub use config::{EnvConfig, EpisodeConfig, ExplorationConfig, InnerSum, RaycastMethod, RewardConfig, SensorConfig, VehicleConfig};
+pub use config::{EnvConfig, EpisodeConfig, ExplorationConfig, InnerSum, ObservationConfig, RaycastMethod, RewardConfig, SensorConfig, VehicleConfig};
 pub use env::{Env, EpisodeSummary, StepOutcome, VecEnv, VecStep, World};
 pub use error::{Result, SimError};
 pub use explore::ExplorationTracker;

@@ -34,7 +34,9 @@ fn check(cfg: EnvConfig) {
     let (mut o, mut om, mut mirrored) = (vec![0f32; d], vec![0f32; d], vec![0f32; d]);
     let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-4);
     let mut collisions = 0;
-    for (k, start) in [Pose { x_m: -4.0, y_m: 1.0, heading_rad: 0.3 }, Pose { x_m: 1.0, y_m: -2.0, heading_rad: -2.0 }, Pose { x_m: 6.0, y_m: 0.0, heading_rad: 1.2 }].into_iter().enumerate() {
+    // Starts off the EQS grid's cell edges in x (every 2 m from −10), where a cell and its mirror
+    // image would not be each other's.
+    for (k, start) in [Pose { x_m: -4.1, y_m: 1.0, heading_rad: 0.3 }, Pose { x_m: 1.0, y_m: -2.0, heading_rad: -2.0 }, Pose { x_m: 6.1, y_m: 0.0, heading_rad: 1.2 }].into_iter().enumerate() {
         let mut a = Env::new(Arc::clone(&world), 1);
         let mut b = Env::new(Arc::clone(&image), 1);
         a.reset_to(start, &mut o);
@@ -69,6 +71,9 @@ fn a_mirrored_transition_is_the_transition_in_the_mirrored_world() {
     check(cfg.clone());
     // More rays per beam, and a full circle, whose beam 0 looks straight back.
     cfg.sensor.rays_per_beam = 5;
+    check(cfg.clone());
+    // With the staleness appended: the mirrored drive enters the mirrored cells at the same steps.
+    cfg.observation.staleness_steps = 30;
     check(cfg.clone());
     cfg.sensor.fov_rad = std::f64::consts::TAU;
     cfg.sensor.beams = 12;

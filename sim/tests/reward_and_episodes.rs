@@ -144,47 +144,100 @@ fn the_collision_term_is_paid_on_the_colliding_step_only() {
     assert!(cfg.validate().is_err());
 }
 
+/// What [`drive_straight_then_lap`] records: per step, the reward, what the step added to the
+/// EQS (> 0: it entered a new cell) and the observation after it (`observed[0]`: at the reset);
+/// the cells visited and the EQS at the end.
+struct Drive {
+    rewards: Vec<f32>,
+    gained: Vec<u64>,
+    observed: Vec<Vec<f32>>,
+    cells: u32,
+    eqs: u64,
+}
+
+/// One drive in the empty box (5 m straight, then a full-lock circle back over its own track)
+/// with the given novelty bonuses (per cell, per EQS point) and staleness horizon.
+fn drive_straight_then_lap(novelty: (f64, f64), staleness_steps: u32) -> Drive {
+    let mut cfg = noiseless();
+    (cfg.reward.novelty, cfg.reward.novelty_eqs) = novelty;
+    cfg.observation.staleness_steps = staleness_steps;
+    let w = world("box", cfg);
+    let mut env = Env::new(Arc::clone(&w), 5);
+    let mut obs = vec![0.0; w.obs_dim()];
+    env.reset_to(Pose { x_m: -6.0, y_m: 0.3, heading_rad: 0.0 }, &mut obs);
+    let (mut rewards, mut new_cell, mut observed) = (Vec::new(), Vec::new(), vec![obs.clone()]);
+    for k in 0..400 {
+        let (cells, eqs) = (env.tracker().cells_visited(), env.tracker().eqs());
+        let o = env.step(if k < 100 { [1.0, 0.0] } else { [1.0, 1.0] }, &mut obs).unwrap();
+        assert!(!o.done());
+        rewards.push(o.reward);
+        let gained = env.tracker().eqs() - eqs;
+        assert_eq!(gained > 0, env.tracker().cells_visited() > cells, "step {k}: a new cell adds to the EQS, an old one does not");
+        new_cell.push(gained);
+        observed.push(obs.clone());
+    }
+    Drive { rewards, gained: new_cell, observed, cells: env.tracker().cells_visited(), eqs: env.tracker().eqs() }
+}
+
 #[test]
 fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
-    // The same drive (straight, then a full-lock circle back over its own track), with eq. (1)
-    // and with eq. (1) plus `novelty`.
-    let drive = |novelty: f64| {
-        let mut cfg = noiseless();
-        cfg.reward.novelty = novelty;
-        let w = world("box", cfg);
-        let mut env = Env::new(Arc::clone(&w), 5);
-        let mut obs = vec![0.0; w.obs_dim()];
-        env.reset_to(Pose { x_m: -6.0, y_m: 0.3, heading_rad: 0.0 }, &mut obs);
-        let mut rewards = Vec::new();
-        let mut new_cell = Vec::new();
-        for k in 0..400 {
-            let before = env.tracker().cells_visited();
-            let o = env.step(if k < 100 { [1.0, 0.0] } else { [1.0, 1.0] }, &mut obs).unwrap();
-            assert!(!o.done());
-            rewards.push(o.reward);
-            new_cell.push(env.tracker().cells_visited() > before);
-        }
-        (rewards, new_cell, env.tracker().cells_visited(), obs[w.obs_dim() - 1])
-    };
-    let (plain, entered, cells, _) = drive(0.0);
-    let (paid, entered_too, _, last_obs_reward) = drive(10.0);
-    assert_eq!(entered, entered_too, "the term does not change the drive");
+    // The same drive with eq. (1) and with eq. (1) plus `novelty` (per cell) and `novelty_eqs`
+    // (per point of EQS).
+    let Drive { rewards: plain, gained, cells, eqs, .. } = drive_straight_then_lap((0.0, 0.0), 0);
+    let Drive { rewards: paid, gained: gained_too, observed, .. } = drive_straight_then_lap((10.0, 0.0), 0);
+    let Drive { rewards: paid_eqs, gained: gained_also, observed: observed_eqs, .. } = drive_straight_then_lap((0.0, 2.0), 0);
+    assert!(gained == gained_too && gained == gained_also, "the terms do not change the drive");
     // 5 m straight from x = −6 crosses cell edges at −4.5 and −2.5; the circle (0.76 m radius)
     // enters a few more and then only cells it has seen.
-    let n_new = entered.iter().filter(|&&e| e).count();
+    let n_new = gained.iter().filter(|&&g| g > 0).count();
     assert_eq!(n_new as u32, cells - 1, "every cell but the start's is entered once");
-    assert!((2..cells as usize).contains(&n_new) && !entered[300..].iter().any(|&e| e), "{entered:?}");
-    for (k, ((p, q), e)) in plain.iter().zip(&paid).zip(&entered).enumerate() {
-        let want = if *e { p + 10.0 } else { *p };
+    assert!(n_new >= 2 && !gained[300..].iter().any(|&g| g > 0), "{gained:?}");
+    assert!(gained.iter().any(|&g| g > 1), "a cell beyond the first ring is entered: {gained:?}");
+    for (k, (((p, q), q_eqs), g)) in plain.iter().zip(&paid).zip(&paid_eqs).zip(&gained).enumerate() {
+        let want = if *g > 0 { p + 10.0 } else { *p };
         assert!((q - want).abs() < 1e-4, "step {k}: {q} against {want}");
+        let want_eqs = p + 2.0 * *g as f32;
+        assert!((q_eqs - want_eqs).abs() < 1e-4, "step {k}: {q_eqs} against {want_eqs}");
+        // The observation after step k carries its reward as R_{t−1}, the bonus included.
+        assert_eq!((observed[k + 1][16], observed_eqs[k + 1][16]), (*q, *q_eqs), "step {k}");
     }
-    assert_eq!(last_obs_reward, *paid.last().unwrap(), "the observation's last reward includes it");
+    // Per point of EQS: the episode's bonus is 2·(EQS − 1), the start's cell (ring 1) unpaid.
+    let bonus: f64 = paid_eqs.iter().zip(&plain).map(|(q, p)| f64::from(q - p)).sum();
+    assert!((bonus - 2.0 * (eqs - 1) as f64).abs() < 1e-3, "{bonus} against EQS {eqs}");
     // A price for exploring, or no number, is refused.
+    for field in ["novelty", "novelty_eqs"] {
+        for bad in [-1.0, f64::INFINITY] {
+            let mut cfg = noiseless();
+            *(if field == "novelty" { &mut cfg.reward.novelty } else { &mut cfg.reward.novelty_eqs }) = bad;
+            assert!(cfg.validate().unwrap_err().to_string().contains(&format!("reward.{field} ")), "{field} = {bad}");
+        }
+    }
+}
+
+#[test]
+fn the_staleness_counts_steps_since_the_last_new_cell_and_changes_nothing_else() {
+    let Drive { rewards: rewards_without, gained, observed: without, .. } = drive_straight_then_lap((0.0, 0.0), 0);
+    let Drive { rewards: rewards_with, gained: gained_too, observed: with, .. } = drive_straight_then_lap((0.0, 0.0), 50);
+    assert_eq!((&gained, &rewards_without), (&gained_too, &rewards_with), "the value only observes");
+    assert_eq!((without[0].len(), with[0].len()), (17, 18), "one value appended");
+    let mut k_since = 0u32;
+    for (t, (a, b)) in without.iter().zip(&with).enumerate() {
+        assert_eq!(&b[..17], &a[..], "step {t}: the rest of the observation is as without it");
+        if t > 0 {
+            k_since = if gained[t - 1] > 0 { 0 } else { k_since + 1 };
+        }
+        assert_eq!(b[17], k_since.min(50) as f32 / 50.0, "step {t}");
+    }
+    // The lap over its own track (the last 100 steps enter nothing) saturates at 1.
+    assert_eq!(with.last().unwrap()[17], 1.0);
+    assert!(with.iter().any(|o| o[17] > 0.0 && o[17] < 1.0), "it passes through values between");
+    // Its mirror image keeps it (the mirrored drive enters the same cells).
     let mut cfg = noiseless();
-    cfg.reward.novelty = -1.0;
-    assert!(cfg.validate().unwrap_err().to_string().contains("reward.novelty"));
-    cfg.reward.novelty = f64::INFINITY;
-    assert!(cfg.validate().is_err());
+    cfg.observation.staleness_steps = 50;
+    let mut mirrored = vec![0.0; 18];
+    let last = with.last().unwrap();
+    cfg.mirror_obs(last, &mut mirrored);
+    assert_eq!((mirrored[17], mirrored[15]), (last[17], -last[15]));
 }
 
 #[test]
