@@ -172,9 +172,8 @@ pub struct RewardConfig {
     /// Added, times what the step adds to the EQS, to the reward of a step that enters a new
     /// cell, ≥ 0 [ours, beyond the paper (issue 18): 0 in eq. 1 and eq. 2. The metric itself
     /// paid: over an episode the term sums to `novelty_eqs`·(EQS − 1), the start's cell not
-    /// being entered, so a cell in ring n pays n
-    /// times one next to the start, and a car that leaves the room it started in is paid for
-    /// it; `novelty` pays every cell alike].
+    /// being entered, so a cell in ring n pays n times one beside the start, and a car that
+    /// leaves the room it started in is paid for it; `novelty` pays every cell alike].
     pub novelty_eqs: f64,
 }
 
@@ -294,7 +293,7 @@ impl Default for ExplorationConfig {
 pub struct ObservationConfig {
     /// S > 0 appends one value, min(k, S)/S ∈ [0, 1], k the steps since the car last entered an
     /// EQS cell (`exploration.cell_area_m2`) the episode had not visited; 0 leaves it out [ours,
-    /// beyond the paper (issue 18): 0 in every paper preset. A memoryless policy cannot tell a
+    /// beyond the paper (issue 18): 0 in every preset. A memoryless policy cannot tell a
     /// lap over its own track from new ground, and `explore-sac`'s policies end most env3
     /// episodes lapping one room's island; the value is what wheel odometry knows, no map].
     pub staleness_steps: u32,
@@ -323,7 +322,9 @@ impl EnvConfig {
     /// image of its pose, after the mirror image of its history: each beam's range moves to
     /// its [`SensorConfig::mirrored_beam`], ω_{t−1} changes sign, v_{t−1} and R_{t−1} stay (eq. (1)
     /// and (2) depend on ω only through ω², and the mirror image of a map is a map), and so does
-    /// the staleness. `obs` and `out` are `obs_dim` long.
+    /// the staleness (exactly where the EQS grid is its own mirror image, as in
+    /// sim/tests/mirror.rs; elsewhere a cell edge may fall a step earlier or later). `obs` and
+    /// `out` are `obs_dim` long.
     pub fn mirror_obs(&self, obs: &[f32], out: &mut [f32]) {
         let n = self.sensor.beams;
         debug_assert!(obs.len() == self.obs_dim() && out.len() == obs.len());
