@@ -67,8 +67,8 @@ pub struct StopCriteria {
     /// A run that stops without meeting its criteria keeps as its policy the best one that its
     /// evaluations of the criterion judged (the lowest share of collisions, then the highest
     /// mean EQS; kept as `policy-best.safetensors` as the run goes) when, evaluated again, it
-    /// is clearly safer than the learner's last one on the same fresh starts (95 % intervals
-    /// of their collision shares apart), the last one beside it as `policy-last.safetensors`;
+    /// is clearly safer than the learner's last one on the same fresh starts (a one-sided Fisher
+    /// exact test on their collision counts at 5 %), the last one beside it as `policy-last.safetensors`;
     /// false: the learner's last one [ours, as Stable-Baselines3's `EvalCallback` keeps its
     /// `best_model`: an off-policy critic can diverge late in a run, and a time limit then
     /// stops on a policy worse than one it had (docs/cluster.md, "A run")].
