@@ -128,9 +128,11 @@ impl EvalSummary {
 const SHEET_EPISODES: usize = 24;
 
 /// The worlds of an evaluation: one map, or a list of maps and families whose episodes take
-/// the items in turn, a family's in its held-out worlds, one after the other.
+/// the items in turn, a family's in the worlds of one split (held-out or validation), one after
+/// the other.
 struct EvalWorlds {
     slots: Vec<Slot>,
+    split: Split,
     env: EnvConfig,
 }
 
@@ -140,7 +142,10 @@ enum Slot {
 }
 
 impl EvalWorlds {
-    fn new(map: &str, env: &EnvConfig) -> Result<EvalWorlds> {
+    fn new(map: &str, split: Split, env: &EnvConfig) -> Result<EvalWorlds> {
+        if split == Split::Train {
+            bail!("an evaluation runs on held-out or validation worlds, never on training ones");
+        }
         let slots = parse_map_list(map)?
             .into_iter()
             .map(|i| match i {
@@ -148,14 +153,14 @@ impl EvalWorlds {
                 MapItem::Family(f) => Ok(Slot::Family(f)),
             })
             .collect::<Result<_, _>>()?;
-        Ok(EvalWorlds { slots, env: env.clone() })
+        Ok(EvalWorlds { slots, split, env: env.clone() })
     }
 
-    /// The world of episode `k` (from 0): item k mod n; a family's (k / n)-th held-out world.
+    /// The world of episode `k` (from 0): item k mod n; a family's (k / n)-th world of the split.
     fn world(&self, k: usize) -> Result<Arc<World>> {
         match &self.slots[k % self.slots.len()] {
             Slot::Fixed(w) => Ok(Arc::clone(w)),
-            Slot::Family(f) => Ok(World::new(generate(*f, Split::HeldOut.seed((k / self.slots.len()) as u64)?)?, self.env.clone())?),
+            Slot::Family(f) => Ok(World::new(generate(*f, self.split.seed((k / self.slots.len()) as u64)?)?, self.env.clone())?),
         }
     }
 
@@ -173,16 +178,18 @@ pub fn load_policy(policy_file: &Path) -> Result<Policy> {
 
 /// Runs `episodes` deterministic episodes of the policy in `policy_file` (a published weights
 /// snapshot, `.safetensors`) on `map` with `env`; draws `episode-K.png` into `out_dir`. `map`
-/// may be a list (`env3+gen:cave`): the episodes take its items in turn, a family's in its
-/// held-out worlds (seeds from `worlds::HELD_OUT_FIRST_SEED`).
-pub fn evaluate(policy_file: &Path, map: &str, env: &EnvConfig, episodes: u32, seed: u64, out_dir: Option<&Path>) -> Result<EvalSummary> {
+/// may be a list (`env3+gen:cave`): the episodes take its items in turn, a family's in the
+/// worlds of `worlds`: [`Split::HeldOut`] for what is reported (seeds from
+/// `worlds::HELD_OUT_FIRST_SEED`), [`Split::Validation`] for what a run judges itself by while
+/// it trains (seeds from `worlds::VALIDATION_FIRST_SEED`).
+pub fn evaluate(policy_file: &Path, map: &str, worlds: Split, env: &EnvConfig, episodes: u32, seed: u64, out_dir: Option<&Path>) -> Result<EvalSummary> {
     if episodes == 0 {
         bail!("--episodes must be >= 1");
     }
     let mut policy = load_policy(policy_file)?;
     // One map, or a list of maps and families: episode k runs in item k mod n, a family's
-    // episodes each in the next of its held-out worlds (never a training world).
-    let worlds = EvalWorlds::new(map, env)?;
+    // episodes each in the next of its worlds of the split (never a training world).
+    let worlds = EvalWorlds::new(map, worlds, env)?;
     let world_for = |k: usize| worlds.world(k);
     let first = world_for(0)?;
     if policy.obs_dim() != first.obs_dim() {
@@ -270,15 +277,20 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_list_is_evaluated_item_by_item_and_families_only_on_held_out_worlds() {
+    fn a_list_is_evaluated_item_by_item_and_families_only_on_held_out_or_validation_worlds() {
         let env = EnvConfig::default();
-        let w = EvalWorlds::new("env1+gen:forest+gen:rooms", &env).unwrap();
+        let w = EvalWorlds::new("env1+gen:forest+gen:rooms", Split::HeldOut, &env).unwrap();
         let names: Vec<String> = (0..7).map(|k| w.world(k).unwrap().map.name.clone()).collect();
         assert_eq!(names, ["env1", "forest-1000000", "rooms-1000000", "env1", "forest-1000001", "rooms-1000001", "env1"]);
         assert_eq!(w.label("env1+gen:forest+gen:rooms"), "env1+gen:forest+gen:rooms");
-        let one = EvalWorlds::new("env3", &env).unwrap();
+        let v = EvalWorlds::new("env1+gen:forest", Split::Validation, &env).unwrap();
+        let names: Vec<String> = (0..4).map(|k| v.world(k).unwrap().map.name.clone()).collect();
+        assert_eq!(names, ["env1", "forest-2000000", "env1", "forest-2000001"]);
+        let one = EvalWorlds::new("env3", Split::HeldOut, &env).unwrap();
         assert_eq!((one.world(5).unwrap().map.name.as_str(), one.label("env3").as_str()), ("env3", "env3"));
-        assert!(EvalWorlds::new("env1+gen:lava", &env).is_err());
+        assert!(EvalWorlds::new("env1+gen:lava", Split::HeldOut, &env).is_err());
+        let e = EvalWorlds::new("gen:forest", Split::Train, &env).err().unwrap().to_string();
+        assert!(e.contains("never on training ones"), "{e}");
     }
 
     #[test]

@@ -246,7 +246,8 @@ struct EvalArgs {
     /// `--episodes` episodes on each world.
     #[arg(long, requires = "seeds")]
     family: Option<String>,
-    /// Seeds A..B of `--family` (held-out worlds start at 1000000).
+    /// Seeds A..B of `--family` (held-out worlds are 1000000..2000000; a run judges itself
+    /// while training on validation worlds, from 2000000).
     #[arg(long, value_parser = worlds::parse_seeds, requires = "family")]
     seeds: Option<std::ops::Range<u64>>,
     /// Episodes (per map with `--maps` or `--family`).
@@ -460,7 +461,7 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
         Some(p) => PathBuf::from("runs").join(format!("eval-{p}-{label}")),
         None => run.join(format!("eval-{label}")),
     });
-    let s = eval::evaluate(&run.join("policy.safetensors"), &map, &env, episodes, a.seed, Some(&out))?;
+    let s = eval::evaluate(&run.join("policy.safetensors"), &map, mapless_sim::worlds::Split::HeldOut, &env, episodes, a.seed, Some(&out))?;
     if a.json {
         println!("{}", serde_json::to_string(&s)?);
     } else {

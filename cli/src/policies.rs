@@ -25,6 +25,7 @@ use serde::{Deserialize, Serialize};
 use crate::eval::{self, EvalSummary};
 use crate::train::{Summary, read_run_config};
 use mapless_sim::EnvConfig;
+use mapless_sim::worlds::Split;
 
 /// The card's machine-readable half.
 pub const CARD_JSON: &str = "card.json";
@@ -186,7 +187,7 @@ fn planned(trained_on: &str, max_steps: u32, extra: &[String]) -> Vec<(String, u
 fn run_eval(dir: &Path, env: &EnvConfig, map: &str, episodes: u32, max_steps: u32, seed: u64, out: Option<&Path>) -> Result<EvalSummary> {
     let mut env = env.clone();
     env.episode.max_steps = max_steps;
-    eval::evaluate(&dir.join("policy.safetensors"), map, &env, episodes, seed, out)
+    eval::evaluate(&dir.join("policy.safetensors"), map, Split::HeldOut, &env, episodes, seed, out)
 }
 
 /// Evaluates one row of `name`'s card (the policy in `dir`): prints it, keeps the env3 sheet of a

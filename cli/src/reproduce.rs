@@ -31,6 +31,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use mapless_sim::paper;
+use mapless_sim::worlds::Split;
 use serde::{Deserialize, Serialize};
 
 use crate::eval::{self, EvalSummary};
@@ -348,7 +349,7 @@ fn run_one(exe: &Path, job: &Job, minutes: Option<f64>, set: &[String], children
             None => {
                 let mut env = read_run_config(&job.dir)?.env;
                 env.episode.max_steps = paper::ENV3_EVAL_STEPS;
-                eval::evaluate(&job.dir.join("policy.safetensors"), "env3", &env, ENV3_EPISODES, ENV3_SEED, Some(&job.env3_dir()))?
+                eval::evaluate(&job.dir.join("policy.safetensors"), "env3", Split::HeldOut, &env, ENV3_EPISODES, ENV3_SEED, Some(&job.env3_dir()))?
             }
         };
         let _ = write!(line, "; env3: steps {:.0}, EQS {:.1}, EES {:.2}, {} collisions", e3.mean_steps, e3.mean_eqs, e3.mean_ees, e3.collisions);

@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use mapless_sim::worlds::{DRIVABLE_CELL_M, DRIVE_CLEARANCE_M, DrivableSpace, Family, HELD_OUT_FIRST_SEED, SIZE_RANGE_M, Split, generate};
+use mapless_sim::worlds::{DRIVABLE_CELL_M, DRIVE_CLEARANCE_M, DrivableSpace, Family, HELD_OUT_FIRST_SEED, SIZE_RANGE_M, Split, VALIDATION_FIRST_SEED, generate};
 use mapless_sim::{Env, EnvConfig, Map, World};
 
 /// Seeds per family in these tests (generation is checked on more in `generation_never_gives_up`).
@@ -100,20 +100,22 @@ fn the_ros_export_loads_back_identical() {
 #[test]
 fn generation_never_gives_up() {
     for f in Family::ALL {
-        for seed in [SEEDS, 10, 77, HELD_OUT_FIRST_SEED, HELD_OUT_FIRST_SEED + 1, u64::MAX] {
+        for seed in [SEEDS, 10, 77, HELD_OUT_FIRST_SEED, HELD_OUT_FIRST_SEED + 1, VALIDATION_FIRST_SEED, VALIDATION_FIRST_SEED + 1, u64::MAX] {
             generate(f, seed).unwrap_or_else(|e| panic!("{f} {seed}: {e}"));
         }
     }
 }
 
 #[test]
-fn training_and_held_out_seeds_never_meet() {
-    let train: Vec<u64> = (0..1000).map(|i| Split::Train.seed(i).unwrap()).collect();
-    let held: Vec<u64> = (0..1000).map(|i| Split::HeldOut.seed(i).unwrap()).collect();
+fn training_held_out_and_validation_seeds_never_meet() {
+    let seeds = |split: Split| -> Vec<u64> { (0..1000).map(|i| split.seed(i).unwrap()).collect() };
+    let (train, held, valid) = (seeds(Split::Train), seeds(Split::HeldOut), seeds(Split::Validation));
     assert!(train.iter().all(|s| Split::of(*s) == Split::Train));
     assert!(held.iter().all(|s| Split::of(*s) == Split::HeldOut));
-    assert!(train.iter().max() < held.iter().min());
+    assert!(valid.iter().all(|s| Split::of(*s) == Split::Validation));
+    assert!(train.iter().max() < held.iter().min() && held.iter().max() < valid.iter().min());
     assert!(Split::Train.seed(HELD_OUT_FIRST_SEED).is_err(), "a training index may not reach the held-out seeds");
+    assert!(Split::HeldOut.seed(VALIDATION_FIRST_SEED - HELD_OUT_FIRST_SEED).is_err(), "a held-out index may not reach the validation seeds");
 }
 
 #[test]

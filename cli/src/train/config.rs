@@ -52,7 +52,10 @@ pub struct StopCriteria {
     /// ... with at most this many collisions [paper §V-A1: "each algorithm achieved 1000
     /// episode steps without collision"].
     pub eval_max_collisions: u32,
-    /// Episodes of that evaluation [ours: 10, as the final evaluation].
+    /// Episodes of that evaluation [ours: 10, as the final evaluation]. A family of generated
+    /// worlds in `eval.map` is judged here (and by `keep_best`) in its validation worlds, never
+    /// in the held-out ones that the final evaluation and `mapless eval` report on [ours: a
+    /// policy chosen on some worlds is flattered there].
     pub eval_episodes: u32,
     /// The averages (and so the evaluation) are judged only once the run has this many
     /// training episodes [ours: the paper evaluates its agents after their whole schedule
@@ -149,12 +152,14 @@ impl Default for ActorsSettings {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct EvalSettings {
-    /// Episodes of the final policy (deterministic); 0 skips it.
+    /// Episodes of the final policy (deterministic; a family's in its held-out worlds); 0
+    /// skips it.
     pub episodes: u32,
     /// Map (default: the training map).
     pub map: Option<String>,
     /// Evaluate the newest policy this often while training (pictures in `eval/`, a line in
-    /// `evals.csv`); none: only at the end.
+    /// `evals.csv`; a family's in its validation worlds, as the stop gate); none: only at the
+    /// end.
     pub every_minutes: Option<f64>,
     /// Episodes of each evaluation while training.
     pub progress_episodes: u32,

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use mapless_sim::EnvConfig;
+use mapless_sim::worlds::Split;
 use serde::{Deserialize, Serialize};
 
 use super::config::{EvalSettings, TrainConfig};
@@ -196,7 +197,7 @@ impl Evaluations {
             && self.policy().exists()
         {
             let (policy, map, env, n, seed, out) = (self.policy(), self.map.clone(), self.env.clone(), self.settings.progress_episodes, self.seed, self.run.join("eval"));
-            let handle = std::thread::Builder::new().name("eval".into()).spawn(move || eval::evaluate(&policy, &map, &env, n, seed, Some(&out)))?;
+            let handle = std::thread::Builder::new().name("eval".into()).spawn(move || eval::evaluate(&policy, &map, Split::Validation, &env, n, seed, Some(&out)))?;
             self.progress = Some(ProgressEval { wall_s: status.wall_s(), handle });
         }
         Ok(())
@@ -223,7 +224,7 @@ impl Evaluations {
         let gate_policy = self.gate_policy();
         fs::copy(self.policy(), &gate_policy).with_context(|| format!("copying the policy to {}", gate_policy.display()))?;
         let (map, env, n, seed) = (self.map.clone(), self.env.clone(), self.gate_episodes, self.seed);
-        let handle = std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&gate_policy, &map, &env, n, seed, None))?;
+        let handle = std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&gate_policy, &map, Split::Validation, &env, n, seed, None))?;
         self.gate = Some(GateEval { at, handle });
         Ok(())
     }
@@ -298,7 +299,7 @@ impl Evaluations {
             best.wall_s,
             self.gate_episodes
         );
-        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, &self.env, self.gate_episodes, self.choice_seed, None) {
+        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, Split::Validation, &self.env, self.gate_episodes, self.choice_seed, None) {
             Ok(s) => append_eval(&self.run, status.wall_s(), kind, &s).map(|()| Some(Score::of(&s, status.wall_s()))),
             Err(e) => {
                 tracing::warn!(error = %format!("{e:#}"), "evaluation of {} failed", policy.display());
@@ -367,7 +368,7 @@ impl Evaluations {
         }
         let map = &self.map;
         eprintln!("evaluating the final policy: {} episodes on {map} (deterministic, starts that no evaluation during training met) ...", self.settings.episodes);
-        match eval::evaluate(&self.policy(), map, &self.env, self.settings.episodes, self.final_seed, Some(&self.run.join("eval"))) {
+        match eval::evaluate(&self.policy(), map, Split::HeldOut, &self.env, self.settings.episodes, self.final_seed, Some(&self.run.join("eval"))) {
             Ok(s) => {
                 eprintln!("  {}", s.one_line());
                 append_eval(&self.run, status.wall_s(), "final", &s)?;

@@ -24,10 +24,13 @@
 //! map; otherwise the same stream draws again, so a seed always names the same world. Every
 //! random start of an episode (which needs more clearance) then lies in that one piece.
 //!
-//! Training and held-out evaluation worlds are split by seed ([`Split`]): training draws seeds
-//! below [`HELD_OUT_FIRST_SEED`], held-out evaluation uses seeds from it upwards. A run's map
-//! may be a list of maps and families (`env1+gen:rooms+gen:cave`, [`WorldPool`]): its vehicles
-//! draw a world per episode from the families' training worlds, its evaluations use held-out ones.
+//! Worlds are split three ways by seed ([`Split`]), as a learning result wants them: training
+//! draws seeds below [`HELD_OUT_FIRST_SEED`]; the held-out worlds that evaluations report on
+//! start there; the validation worlds that a run's own evaluations judge it on while it trains
+//! (its stop gate, the choice of its policy) start at [`VALIDATION_FIRST_SEED`], so a policy
+//! chosen on some worlds is never reported on those. A run's map may be a list of maps and
+//! families (`env1+gen:rooms+gen:cave`, [`WorldPool`]): its vehicles draw a world per episode
+//! from the families' training worlds.
 
 mod cave;
 mod clutter;
@@ -54,6 +57,8 @@ pub const DRIVE_CLEARANCE_M: f64 = 0.45;
 pub const DRIVABLE_CELL_M: f64 = 0.25;
 /// First seed of the held-out evaluation worlds; training worlds use the seeds below it.
 pub const HELD_OUT_FIRST_SEED: u64 = 1_000_000;
+/// First seed of the validation worlds; the held-out ones end below it.
+pub const VALIDATION_FIRST_SEED: u64 = 2_000_000;
 /// Draws per seed before generation gives up (never reached by the shipped families; tested).
 const MAX_DRAWS: usize = 64;
 /// Prefix that names a generated world wherever a map is named: `gen:cave:7`.
@@ -132,23 +137,49 @@ impl std::fmt::Display for Family {
 pub enum Split {
     /// Seeds `0 .. HELD_OUT_FIRST_SEED`: what training draws from.
     Train,
-    /// Seeds from `HELD_OUT_FIRST_SEED` up: kept for evaluation, never trained on.
+    /// Seeds `HELD_OUT_FIRST_SEED .. VALIDATION_FIRST_SEED`: what evaluations report on, never
+    /// trained on, never used to choose a policy.
     HeldOut,
+    /// Seeds from `VALIDATION_FIRST_SEED` up: what a run's evaluations while it trains judge it
+    /// on (its stop gate, the choice of its policy at the end), never trained on.
+    Validation,
 }
 
 impl Split {
     /// The split a seed belongs to.
     pub fn of(seed: u64) -> Split {
-        if seed < HELD_OUT_FIRST_SEED { Split::Train } else { Split::HeldOut }
+        match seed {
+            s if s < HELD_OUT_FIRST_SEED => Split::Train,
+            s if s < VALIDATION_FIRST_SEED => Split::HeldOut,
+            _ => Split::Validation,
+        }
     }
 
-    /// The `index`-th seed of this split (training indices must stay below
-    /// `HELD_OUT_FIRST_SEED`).
+    /// The `index`-th seed of this split (an index must keep the seed inside the split).
     pub fn seed(self, index: u64) -> Result<u64> {
+        let (first, end) = match self {
+            Split::Train => (0, Some(HELD_OUT_FIRST_SEED)),
+            Split::HeldOut => (HELD_OUT_FIRST_SEED, Some(VALIDATION_FIRST_SEED)),
+            Split::Validation => (VALIDATION_FIRST_SEED, None),
+        };
+        first.checked_add(index).filter(|s| end.is_none_or(|e| *s < e)).ok_or_else(|| SimError::InvalidConfig(format!("{} world index {index} too large: the split {}", self.name(), self.range())))
+    }
+
+    /// What the split is called in messages.
+    pub fn name(self) -> &'static str {
         match self {
-            Split::Train if index < HELD_OUT_FIRST_SEED => Ok(index),
-            Split::Train => Err(SimError::InvalidConfig(format!("training world index {index} ≥ {HELD_OUT_FIRST_SEED}, the first held-out seed"))),
-            Split::HeldOut => HELD_OUT_FIRST_SEED.checked_add(index).ok_or_else(|| SimError::InvalidConfig(format!("held-out world index {index} too large"))),
+            Split::Train => "training",
+            Split::HeldOut => "held-out",
+            Split::Validation => "validation",
+        }
+    }
+
+    /// The split's seeds, as a message writes them.
+    fn range(self) -> String {
+        match self {
+            Split::Train => format!("holds seeds 0..{HELD_OUT_FIRST_SEED}"),
+            Split::HeldOut => format!("holds seeds {HELD_OUT_FIRST_SEED}..{VALIDATION_FIRST_SEED}"),
+            Split::Validation => format!("holds seeds from {VALIDATION_FIRST_SEED}"),
         }
     }
 }
@@ -239,10 +270,15 @@ mod tests {
     fn the_split_is_by_seed_and_never_overlaps() {
         assert_eq!(Split::of(Split::Train.seed(HELD_OUT_FIRST_SEED - 1).unwrap()), Split::Train);
         assert_eq!(Split::of(Split::HeldOut.seed(0).unwrap()), Split::HeldOut);
+        assert_eq!(Split::of(Split::HeldOut.seed(VALIDATION_FIRST_SEED - HELD_OUT_FIRST_SEED - 1).unwrap()), Split::HeldOut);
+        assert_eq!(Split::of(Split::Validation.seed(0).unwrap()), Split::Validation);
         assert!(Split::Train.seed(HELD_OUT_FIRST_SEED).is_err());
+        let e = Split::HeldOut.seed(VALIDATION_FIRST_SEED - HELD_OUT_FIRST_SEED).unwrap_err().to_string();
+        assert!(e.contains("held-out world index 1000000 too large") && e.contains("1000000..2000000"), "{e}");
+        assert!(Split::Validation.seed(u64::MAX).is_err());
         for i in [0, 1, 17, 999_999] {
-            let (t, h) = (Split::Train.seed(i).unwrap(), Split::HeldOut.seed(i).unwrap());
-            assert!(t < HELD_OUT_FIRST_SEED && h >= HELD_OUT_FIRST_SEED && t != h);
+            let (t, h, v) = (Split::Train.seed(i).unwrap(), Split::HeldOut.seed(i).unwrap(), Split::Validation.seed(i).unwrap());
+            assert!(t < HELD_OUT_FIRST_SEED && (HELD_OUT_FIRST_SEED..VALIDATION_FIRST_SEED).contains(&h) && v >= VALIDATION_FIRST_SEED);
         }
     }
 }
