@@ -61,7 +61,11 @@ pub fn run(cmd: WorldsCmd) -> Result<()> {
                 let (lo, hi) = f.size_range_m();
                 println!("{:<7} {lo:>2.0}–{hi:<2.0} m  {}", f.name(), f.describe());
             }
-            println!("(name one anywhere a map is named as gen:FAMILY:SEED; held-out evaluation seeds start at {})", Split::HeldOut.seed(0)?);
+            println!(
+                "(name one anywhere a map is named as gen:FAMILY:SEED; training worlds are seeds below {}, held-out ones (what evaluations report) start there, validation ones (what a run judges itself by while training) at {})",
+                Split::HeldOut.seed(0)?,
+                Split::Validation.seed(0)?
+            );
             Ok(())
         }
         WorldsCmd::Generate { family, seed, out, resolution } => generate_cmd(&family, seed, &out, resolution),
