@@ -120,7 +120,7 @@ pub struct LearnerConfig {
     pub critic_layer_norm: bool,
     /// Largest TD target: every algorithm's yᵢ (eqs. 2, 7, 9) is clipped to at most this
     /// before the critic step; `null` clips nothing. Beyond the paper, null in the paper's presets,
-    /// 300 in `explore-sac` [inferred: null]. Its reason: no return can exceed the reward's per-step supremum over
+    /// 335 in `explore-sac` (300 plus room for its bonus on the EQS) [inferred: null]. Its reason: no return can exceed the reward's per-step supremum over
     /// 1 − γ, yet runs of `explore-sac` with five rays per beam drove their Q means past 2,000
     /// (docs/cluster.md). With eq. (1), the default 12 m sensor and 0.5 m/s the bound is
     /// (0.0075·12² + 1.5·0.5²)/(1 − 0.995) = 291 (`mapless maps stats` gives a world's own),
