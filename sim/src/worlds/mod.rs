@@ -148,21 +148,29 @@ pub enum Split {
 impl Split {
     /// The split a seed belongs to.
     pub fn of(seed: u64) -> Split {
-        match seed {
-            s if s < HELD_OUT_FIRST_SEED => Split::Train,
-            s if s < VALIDATION_FIRST_SEED => Split::HeldOut,
-            _ => Split::Validation,
+        [Split::Train, Split::HeldOut, Split::Validation].into_iter().find(|s| s.bounds().1.is_none_or(|end| seed < end)).expect("the last split has no end")
+    }
+
+    /// The split's first seed and the seed it ends before (none: it runs to `u64::MAX`); the
+    /// one place the ranges are written.
+    fn bounds(self) -> (u64, Option<u64>) {
+        match self {
+            Split::Train => (0, Some(HELD_OUT_FIRST_SEED)),
+            Split::HeldOut => (HELD_OUT_FIRST_SEED, Some(VALIDATION_FIRST_SEED)),
+            Split::Validation => (VALIDATION_FIRST_SEED, None),
         }
     }
 
     /// The `index`-th seed of this split (an index must keep the seed inside the split).
     pub fn seed(self, index: u64) -> Result<u64> {
-        let (first, end) = match self {
-            Split::Train => (0, Some(HELD_OUT_FIRST_SEED)),
-            Split::HeldOut => (HELD_OUT_FIRST_SEED, Some(VALIDATION_FIRST_SEED)),
-            Split::Validation => (VALIDATION_FIRST_SEED, None),
-        };
-        first.checked_add(index).filter(|s| end.is_none_or(|e| *s < e)).ok_or_else(|| SimError::InvalidConfig(format!("{} world index {index} too large: the split {}", self.name(), self.range())))
+        let (first, end) = self.bounds();
+        first.checked_add(index).filter(|s| end.is_none_or(|e| *s < e)).ok_or_else(|| {
+            let seeds = match end {
+                Some(e) => format!("{first}..{e}"),
+                None => format!("from {first}"),
+            };
+            SimError::InvalidConfig(format!("{} world index {index} too large: the split holds seeds {seeds}", self.name()))
+        })
     }
 
     /// What the split is called in messages.
@@ -171,15 +179,6 @@ impl Split {
             Split::Train => "training",
             Split::HeldOut => "held-out",
             Split::Validation => "validation",
-        }
-    }
-
-    /// The split's seeds, as a message writes them.
-    fn range(self) -> String {
-        match self {
-            Split::Train => format!("holds seeds 0..{HELD_OUT_FIRST_SEED}"),
-            Split::HeldOut => format!("holds seeds {HELD_OUT_FIRST_SEED}..{VALIDATION_FIRST_SEED}"),
-            Split::Validation => format!("holds seeds from {VALIDATION_FIRST_SEED}"),
         }
     }
 }
