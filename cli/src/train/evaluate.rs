@@ -1,7 +1,8 @@
 //! Evaluations of the run's policy: of the newest one every `eval.every_minutes` while training,
 //! of a copy of it whenever the moving averages hold and the stop criterion asks for an
-//! evaluation (the best of those copies kept as `policy-best.safetensors`), of the final one at
-//! the end; each recorded as a line of `evals.csv`.
+//! evaluation, and every `stop.choose_every_minutes` to choose from (the best of those copies
+//! kept as `policy-best.safetensors`), of the final one at the end; each recorded as a line of
+//! `evals.csv`.
 //! Those made while training run on threads of their own: they must not hold up the
 //! supervision.
 
@@ -48,10 +49,30 @@ impl ProgressEval {
 }
 
 /// An evaluation of the stop criterion, on a copy of the policy it judges; `at` is the point of
-/// training it judges (taken when the policy was copied).
+/// training it judges (taken when the policy was copied). One made only to choose from
+/// (`stop.choose_every_minutes`) is scored for the best policy as well, but judges nothing.
 struct GateEval {
     at: Milestone,
+    kind: GateKind,
     handle: JoinHandle<Result<EvalSummary>>,
+}
+
+/// Why a copy of the policy is evaluated on the criterion's starts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum GateKind {
+    /// The moving averages hold: the evaluation may stop the run (`criteria` in evals.csv).
+    Criterion,
+    /// `stop.choose_every_minutes` has passed: only scored for `policy-best` (`candidate`).
+    Candidate,
+}
+
+impl GateKind {
+    fn csv(self) -> &'static str {
+        match self {
+            GateKind::Criterion => "criteria",
+            GateKind::Candidate => "candidate",
+        }
+    }
 }
 
 /// How an evaluation of the criterion scored a policy: what choosing the best one compares
@@ -102,6 +123,9 @@ pub(crate) struct Evaluations {
     /// `eval.map`, or the training map.
     map: String,
     env: EnvConfig,
+    /// `env` with the step limit of the evaluations that choose the run's policy
+    /// (`stop.choose_max_steps`): those to choose from and `stop.keep_best`'s at the end.
+    choose_env: EnvConfig,
     /// The seed of the evaluations while training and of the stop criterion (the run's,
     /// offset): they all meet the same starts, so their figures compare along the run.
     seed: u64,
@@ -120,6 +144,9 @@ pub(crate) struct Evaluations {
     last_progress: Instant,
     gate: Option<GateEval>,
     last_gate: Option<Instant>,
+    /// `stop.choose_every_minutes`, and when the last evaluation to choose from started.
+    choose_every: Option<Duration>,
+    last_candidate: Instant,
     /// The best score of an evaluation of the criterion so far (its policy in
     /// `policy-best.safetensors`).
     best: Option<Score>,
@@ -131,6 +158,11 @@ impl Evaluations {
             run: run.to_owned(),
             map: cfg.eval.map.clone().unwrap_or_else(|| cfg.map.clone()),
             env: cfg.env.clone(),
+            choose_env: {
+                let mut env = cfg.env.clone();
+                env.episode.max_steps = cfg.stop.choose_max_steps.unwrap_or(env.episode.max_steps);
+                env
+            },
             seed: cfg.seed.wrapping_add(1_000_003),
             final_seed: cfg.seed.wrapping_add(2_000_003),
             choice_seed: cfg.seed.wrapping_add(3_000_003),
@@ -140,6 +172,8 @@ impl Evaluations {
             last_progress: Instant::now(),
             gate: None,
             last_gate: None,
+            choose_every: cfg.stop.choose_every_minutes.map(|m| Duration::from_secs_f64(m * 60.0)),
+            last_candidate: Instant::now(),
             best: None,
         };
         evals.best = evals.read_best();
@@ -218,20 +252,34 @@ impl Evaluations {
         self.gate.is_none() && self.last_gate.is_none_or(|t| t.elapsed() >= GATE_EVAL_COOLDOWN) && self.policy().exists()
     }
 
-    /// Starts an evaluation of the stop criterion on a copy of the newest policy (the learner
-    /// keeps replacing policy.safetensors); `at` is this point of training.
-    pub(crate) fn start_gate(&mut self, at: Milestone) -> Result<()> {
+    /// Whether an evaluation to choose from is due (`stop.choose_every_minutes` since the last
+    /// one, or since the start) and may start ([`Evaluations::gate_may_start`]).
+    pub(crate) fn candidate_due(&self) -> bool {
+        self.choose_every.is_some_and(|every| self.last_candidate.elapsed() >= every) && self.gate_may_start()
+    }
+
+    /// Starts an evaluation of a copy of the newest policy on the criterion's starts (the
+    /// learner keeps replacing policy.safetensors); `at` is this point of training.
+    pub(crate) fn start_gate(&mut self, at: Milestone, kind: GateKind) -> Result<()> {
+        if kind == GateKind::Candidate {
+            self.last_candidate = Instant::now();
+        }
         let gate_policy = self.gate_policy();
         fs::copy(self.policy(), &gate_policy).with_context(|| format!("copying the policy to {}", gate_policy.display()))?;
-        let (map, env, n, seed) = (self.map.clone(), self.env.clone(), self.gate_episodes, self.seed);
+        let env = match kind {
+            GateKind::Criterion => self.env.clone(),
+            GateKind::Candidate => self.choose_env.clone(),
+        };
+        let (map, n, seed) = (self.map.clone(), self.gate_episodes, self.seed);
         let handle = std::thread::Builder::new().name("eval-criteria".into()).spawn(move || eval::evaluate(&gate_policy, &map, Split::Validation, &env, n, seed, None))?;
-        self.gate = Some(GateEval { at, handle });
+        self.gate = Some(GateEval { at, kind, handle });
         Ok(())
     }
 
     /// An evaluation of the stop criterion that has ended, recorded (a `criteria` line of
-    /// `evals.csv`), with the point of training it judged; one that failed is logged and
-    /// yields nothing. What it logs goes `above` the progress line.
+    /// `evals.csv`, `candidate` for one made only to choose from), with the point of training it
+    /// judged; one that failed, or was made only to choose from, yields nothing to judge. What
+    /// it logs goes `above` the progress line.
     pub(crate) fn gate_ended(&mut self, status: &Status, above: &ProgressBar) -> Result<Option<(Milestone, EvalSummary)>> {
         let Some(g) = self.gate.take_if(|g| g.handle.is_finished()) else { return Ok(None) };
         self.last_gate = Some(Instant::now());
@@ -249,11 +297,17 @@ impl Evaluations {
     fn record_gate(&mut self, g: GateEval, status: &Status) -> Result<Option<(Milestone, EvalSummary)>> {
         match g.handle.join() {
             Ok(Ok(s)) => {
-                append_eval(&self.run, status.wall_s(), "criteria", &s)?;
-                if let Err(e) = self.consider(Score::of(&s, status.wall_s())) {
+                append_eval(&self.run, status.wall_s(), g.kind.csv(), &s)?;
+                if g.kind == GateKind::Candidate {
+                    tracing::info!(policy_version = s.policy_version, "evaluation to choose from: {}", s.one_line());
+                }
+                // The criterion's evaluations are scored too when they run as long as those that
+                // choose; scores of episodes of other lengths do not compare.
+                let scored = g.kind == GateKind::Candidate || self.choose_env.episode.max_steps == self.env.episode.max_steps;
+                if scored && let Err(e) = self.consider(Score::of(&s, status.wall_s())) {
                     tracing::warn!(error = %format!("{e:#}"), "keeping the best policy evaluated failed (the run goes on)");
                 }
-                Ok(Some((g.at, s)))
+                Ok((g.kind == GateKind::Criterion).then_some((g.at, s)))
             }
             Ok(Err(e)) => {
                 tracing::warn!(error = %format!("{e:#}"), "evaluation of the stop criterion failed");
@@ -299,7 +353,7 @@ impl Evaluations {
             best.wall_s,
             self.gate_episodes
         );
-        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, Split::Validation, &self.env, self.gate_episodes, self.choice_seed, None) {
+        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, Split::Validation, &self.choose_env, self.gate_episodes, self.choice_seed, None) {
             Ok(s) => append_eval(&self.run, status.wall_s(), kind, &s).map(|()| Some(Score::of(&s, status.wall_s()))),
             Err(e) => {
                 tracing::warn!(error = %format!("{e:#}"), "evaluation of {} failed", policy.display());
@@ -540,6 +594,53 @@ mod tests {
         assert_eq!(read("policy-best.safetensors"), "v6");
         std::fs::write(dir.path().join("policy-best.json"), "{ torn").unwrap();
         assert_eq!(Evaluations::new(&cfg, dir.path()).best, None, "a score that does not read is chosen afresh");
+    }
+
+    #[test]
+    fn evaluations_to_choose_from_come_every_choose_every_minutes_are_scored_and_judge_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = super::super::config::preset_config("explore-sac").unwrap();
+        cfg.stop.eval_episodes = 2;
+        cfg.env.episode.max_steps = 40;
+        (cfg.stop.choose_every_minutes, cfg.stop.choose_max_steps) = (None, None);
+        let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/explore-sac/policy.safetensors");
+        let evals = Evaluations::new(&cfg, dir.path());
+        fs::copy(&shipped, evals.policy()).unwrap();
+        assert!(evals.choose_every.is_none() && !evals.candidate_due(), "off unless the config asks");
+
+        cfg.stop.choose_every_minutes = Some(0.5);
+        cfg.stop.choose_max_steps = Some(60);
+        let mut evals = Evaluations::new(&cfg, dir.path());
+        assert!(!evals.candidate_due(), "not before the first half minute has passed");
+        evals.last_candidate -= Duration::from_secs(31);
+        assert!(evals.candidate_due());
+        let (status, above) = (Status::new(0.0, None), ProgressBar::hidden());
+        let ended = |evals: &mut Evaluations, kind| {
+            evals.start_gate(status.milestone(0), kind).unwrap();
+            let g = evals.gate.as_ref().unwrap();
+            while !g.handle.is_finished() {
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            evals.gate_ended(&status, &above).unwrap()
+        };
+        // The criterion's evaluations run the training episodes' 40 steps: not scored against
+        // the 60-step ones that choose.
+        assert!(ended(&mut evals, GateKind::Criterion).is_some() && evals.best.is_none());
+        evals.last_gate = evals.last_gate.map(|t| t - GATE_EVAL_COOLDOWN);
+        evals.last_candidate -= Duration::from_secs(31);
+        assert!(ended(&mut evals, GateKind::Candidate).is_none(), "an evaluation to choose from stops nothing");
+        assert!(!evals.candidate_due(), "the clock starts again");
+        let best = evals.best.clone().expect("scored for the best policy");
+        assert_eq!((best.episodes, fs::read(evals.best_policy()).unwrap()), (2, fs::read(&shipped).unwrap()));
+        let rows: Vec<csv::StringRecord> = csv::Reader::from_path(dir.path().join("evals.csv")).unwrap().records().map(|r| r.unwrap()).collect();
+        let kinds: Vec<(&str, f64)> = rows.iter().map(|r| (&r[1], r[5].parse().unwrap())).collect();
+        assert_eq!(kinds.iter().map(|k| k.0).collect::<Vec<_>>(), ["criteria", "candidate"]);
+        assert!(kinds[0].1 <= 40.0 && kinds[1].1 > 40.0, "episodes of stop.choose_max_steps: {kinds:?}");
+        // The next due one waits for the cooldown after the last evaluation, then the period.
+        evals.last_candidate -= Duration::from_secs(31);
+        assert!(!evals.candidate_due(), "the cooldown after an evaluation holds");
+        evals.last_gate = evals.last_gate.map(|t| t - GATE_EVAL_COOLDOWN);
+        assert!(evals.candidate_due());
     }
 
     #[test]

@@ -53,7 +53,7 @@ use cluster::{Binaries, Cluster};
 use config::{TrainConfig, load_config};
 use curves::{Curves, draw_curves};
 use episodes::Episodes;
-use evaluate::Evaluations;
+use evaluate::{Evaluations, GateKind};
 use folder::RunFolder;
 use progress::{Figures, Progress};
 use status::Status;
@@ -103,7 +103,9 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
             progress.above().suspend(|| rules.judge(at, s));
         }
         if rules.averages(&episodes.rows, || status.milestone(episodes.count())) == Averages::Evaluate && evals.gate_may_start() {
-            evals.start_gate(status.milestone(episodes.count()))?;
+            evals.start_gate(status.milestone(episodes.count()), GateKind::Criterion)?;
+        } else if evals.candidate_due() {
+            evals.start_gate(status.milestone(episodes.count()), GateKind::Candidate)?;
         }
         if rules.stops(interrupt.came(), episodes.count(), status.wall_s()) {
             break;

@@ -35,7 +35,7 @@ use serde::{Deserialize, Serialize};
 use super::config::{TrainConfig, preset_with_sets};
 use super::curves::{Curves, draw_curves};
 use super::episodes::Episodes;
-use super::evaluate::Evaluations;
+use super::evaluate::{Evaluations, GateKind};
 use super::folder::RunFolder;
 use super::status::{LearnerEnd, Status};
 use super::stop::{Averages, INTERRUPTED, Interrupt, StopRules};
@@ -155,7 +155,8 @@ pub fn monitor(args: &MonitorArgs) -> Result<ExitCode> {
             rules.judge(at, s);
         }
         match rules.averages(&episodes.rows, || status.milestone(episodes.count())) {
-            Averages::Evaluate if evals.gate_may_start() => evals.start_gate(status.milestone(episodes.count()))?,
+            Averages::Evaluate if evals.gate_may_start() => evals.start_gate(status.milestone(episodes.count()), GateKind::Criterion)?,
+            _ if evals.candidate_due() => evals.start_gate(status.milestone(episodes.count()), GateKind::Candidate)?,
             _ => {}
         }
         // The criteria, once met, are told once; the cluster goes on (it is not the monitor's).
