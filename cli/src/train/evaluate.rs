@@ -21,6 +21,7 @@ use super::config::{EvalSettings, TrainConfig};
 use super::episodes::truncate_torn_line;
 use super::folder::write_atomic;
 use super::status::{Milestone, Status};
+use super::stop::Averages;
 use crate::eval::{self, EvalSummary};
 
 /// Shortest time between two evaluations of the stop criterion (they run while training goes
@@ -59,7 +60,7 @@ struct GateEval {
 
 /// Why a copy of the policy is evaluated on the criterion's starts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum GateKind {
+enum GateKind {
     /// The moving averages hold: the evaluation may stop the run (`criteria` in evals.csv).
     Criterion,
     /// `stop.choose_every_minutes` has passed: only scored for `policy-best` (`candidate`).
@@ -248,19 +249,32 @@ impl Evaluations {
 
     /// Whether an evaluation of the stop criterion may start now: none running, the last one
     /// ended at least [`GATE_EVAL_COOLDOWN`] ago, and the learner has published a policy.
-    pub(crate) fn gate_may_start(&self) -> bool {
+    fn gate_may_start(&self) -> bool {
         self.gate.is_none() && self.last_gate.is_none_or(|t| t.elapsed() >= GATE_EVAL_COOLDOWN) && self.policy().exists()
     }
 
     /// Whether an evaluation to choose from is due (`stop.choose_every_minutes` since the last
     /// one, or since the start) and may start ([`Evaluations::gate_may_start`]).
-    pub(crate) fn candidate_due(&self) -> bool {
+    fn candidate_due(&self) -> bool {
         self.choose_every.is_some_and(|every| self.last_candidate.elapsed() >= every) && self.gate_may_start()
+    }
+
+    /// Starts the evaluation now due, if any: one of the criterion when the moving averages ask
+    /// for it and one may start, else one to choose from when that is due; `at` gives this
+    /// point of training (asked only when one starts).
+    pub(crate) fn start_due(&mut self, averages: Averages, at: impl FnOnce() -> Milestone) -> Result<()> {
+        if averages == Averages::Evaluate && self.gate_may_start() {
+            self.start_gate(at(), GateKind::Criterion)
+        } else if self.candidate_due() {
+            self.start_gate(at(), GateKind::Candidate)
+        } else {
+            Ok(())
+        }
     }
 
     /// Starts an evaluation of a copy of the newest policy on the criterion's starts (the
     /// learner keeps replacing policy.safetensors); `at` is this point of training.
-    pub(crate) fn start_gate(&mut self, at: Milestone, kind: GateKind) -> Result<()> {
+    fn start_gate(&mut self, at: Milestone, kind: GateKind) -> Result<()> {
         if kind == GateKind::Candidate {
             self.last_candidate = Instant::now();
         }
@@ -615,20 +629,21 @@ mod tests {
         evals.last_candidate -= Duration::from_secs(31);
         assert!(evals.candidate_due());
         let (status, above) = (Status::new(0.0, None), ProgressBar::hidden());
-        let ended = |evals: &mut Evaluations, kind| {
-            evals.start_gate(status.milestone(0), kind).unwrap();
-            let g = evals.gate.as_ref().unwrap();
+        let ended = |evals: &mut Evaluations, averages| {
+            evals.start_due(averages, || status.milestone(0)).unwrap();
+            let g = evals.gate.as_ref().expect("an evaluation is due");
             while !g.handle.is_finished() {
                 std::thread::sleep(Duration::from_millis(10));
             }
             evals.gate_ended(&status, &above).unwrap()
         };
-        // The criterion's evaluations run the training episodes' 40 steps: not scored against
-        // the 60-step ones that choose.
-        assert!(ended(&mut evals, GateKind::Criterion).is_some() && evals.best.is_none());
+        // One to choose from is due, but averages that hold come first. The criterion's
+        // evaluations run the training episodes' 40 steps: not scored against the 60-step ones
+        // that choose.
+        assert!(ended(&mut evals, Averages::Evaluate).is_some() && evals.best.is_none());
         evals.last_gate = evals.last_gate.map(|t| t - GATE_EVAL_COOLDOWN);
         evals.last_candidate -= Duration::from_secs(31);
-        assert!(ended(&mut evals, GateKind::Candidate).is_none(), "an evaluation to choose from stops nothing");
+        assert!(ended(&mut evals, Averages::Short).is_none(), "an evaluation to choose from stops nothing");
         assert!(!evals.candidate_due(), "the clock starts again");
         let best = evals.best.clone().expect("scored for the best policy");
         assert_eq!((best.episodes, fs::read(evals.best_policy()).unwrap()), (2, fs::read(&shipped).unwrap()));
@@ -641,6 +656,9 @@ mod tests {
         assert!(!evals.candidate_due(), "the cooldown after an evaluation holds");
         evals.last_gate = evals.last_gate.map(|t| t - GATE_EVAL_COOLDOWN);
         assert!(evals.candidate_due());
+        evals.last_candidate = Instant::now();
+        evals.start_due(Averages::Short, || unreachable!("nothing is due")).unwrap();
+        assert!(evals.gate.is_none());
     }
 
     #[test]

@@ -53,11 +53,11 @@ use cluster::{Binaries, Cluster};
 use config::{TrainConfig, load_config};
 use curves::{Curves, draw_curves};
 use episodes::Episodes;
-use evaluate::{Evaluations, GateKind};
+use evaluate::Evaluations;
 use folder::RunFolder;
 use progress::{Figures, Progress};
 use status::Status;
-use stop::{Averages, Interrupt, StopRules};
+use stop::{Interrupt, StopRules};
 use summary::End;
 
 /// Runs `mapless train`.
@@ -102,11 +102,8 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
         if let Some((at, s)) = evals.gate_ended(&status, progress.above())? {
             progress.above().suspend(|| rules.judge(at, s));
         }
-        if rules.averages(&episodes.rows, || status.milestone(episodes.count())) == Averages::Evaluate && evals.gate_may_start() {
-            evals.start_gate(status.milestone(episodes.count()), GateKind::Criterion)?;
-        } else if evals.candidate_due() {
-            evals.start_gate(status.milestone(episodes.count()), GateKind::Candidate)?;
-        }
+        let at = || status.milestone(episodes.count());
+        evals.start_due(rules.averages(&episodes.rows, at), at)?;
         if rules.stops(interrupt.came(), episodes.count(), status.wall_s()) {
             break;
         }

@@ -35,10 +35,10 @@ use serde::{Deserialize, Serialize};
 use super::config::{TrainConfig, preset_with_sets};
 use super::curves::{Curves, draw_curves};
 use super::episodes::Episodes;
-use super::evaluate::{Evaluations, GateKind};
+use super::evaluate::Evaluations;
 use super::folder::RunFolder;
 use super::status::{LearnerEnd, Status};
-use super::stop::{Averages, INTERRUPTED, Interrupt, StopRules};
+use super::stop::{INTERRUPTED, Interrupt, StopRules};
 use super::summary::{End, Summary};
 use crate::scrape;
 
@@ -154,11 +154,8 @@ pub fn monitor(args: &MonitorArgs) -> Result<ExitCode> {
         if let Some((at, s)) = evals.gate_ended(&status, &quiet)? {
             rules.judge(at, s);
         }
-        match rules.averages(&episodes.rows, || status.milestone(episodes.count())) {
-            Averages::Evaluate if evals.gate_may_start() => evals.start_gate(status.milestone(episodes.count()), GateKind::Criterion)?,
-            _ if evals.candidate_due() => evals.start_gate(status.milestone(episodes.count()), GateKind::Candidate)?,
-            _ => {}
-        }
+        let at = || status.milestone(episodes.count());
+        evals.start_due(rules.averages(&episodes.rows, at), at)?;
         // The criteria, once met, are told once; the cluster goes on (it is not the monitor's).
         if !announced && rules.met() {
             tracing::info!("criteria met: {} (the cluster goes on; the monitor keeps recording)", rules.stopped_because());
