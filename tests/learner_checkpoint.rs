@@ -97,6 +97,65 @@ fn the_policy_file_holds_the_actor_alone_with_its_metadata() {
     }
 }
 
+/// `policy_average`: the policy published (and exported) is θ̄ after n updates, θ̄ ← θ̄ +
+/// max(τ̄, 1/n)(θ − θ̄) over the trained actors θ, on both update paths and for every
+/// algorithm; the trained actor is unchanged by it; a checkpoint keeps θ̄ exactly; and τ̄
+/// outside (0, 1] is refused.
+#[test]
+fn a_running_average_of_the_actor_is_what_is_published_and_checkpointed() {
+    const TAU: f64 = 0.3;
+    let actor = |agent: &Agent| -> Vec<(String, Vec<f64>)> {
+        let mut s: Vec<_> = state(agent).into_iter().filter(|(n, _)| n.starts_with("actor.")).map(|(n, v)| (n, v.into_iter().map(f64::from).collect())).collect();
+        s.sort_by(|a, b| a.0.cmp(&b.0));
+        s
+    };
+    let published = |agent: &Agent| -> HashMap<String, Vec<f32>> { agent.policy_tensors().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(&t.reshape([-1])).unwrap())).collect() };
+    for algorithm in ALL {
+        for fused in [true, false] {
+            let c = LearnerConfig { policy_average: Some(TAU), fused_update: fused, ..cfg(algorithm) };
+            let mut agent = Agent::new(&c, 5, 2).unwrap();
+            let mut plain = Agent::new(&LearnerConfig { policy_average: None, ..c.clone() }, 5, 2).unwrap();
+            let mut want: Vec<(String, Vec<f64>)> = Vec::new();
+            for (n, b) in batches(6).iter().enumerate() {
+                agent.update(b).unwrap();
+                plain.update(b).unwrap();
+                let now = actor(&agent);
+                assert_eq!(now, actor(&plain), "{algorithm:?}: averaging changed training");
+                let step = TAU.max(1.0 / (n + 1) as f64);
+                want =
+                    if want.is_empty() { now } else { want.into_iter().zip(now).map(|((name, avg), (_, theta))| (name, avg.iter().zip(&theta).map(|(a, t)| a + step * (t - a)).collect())).collect() };
+            }
+            let got = published(&agent);
+            assert_eq!(got.len(), want.len());
+            for (name, values) in &want {
+                let g = &got[name];
+                let worst = g.iter().zip(values).map(|(g, w)| (f64::from(*g) - w).abs()).fold(0.0, f64::max);
+                assert!(worst < 1e-6, "{algorithm:?} fused {fused}: {name} is {worst} from the average");
+            }
+            assert_ne!(got, published(&plain), "{algorithm:?}: the average is the last actor");
+
+            let dir = tempfile::tempdir().unwrap();
+            checkpoint::save(dir.path(), &agent, &serde_json::Value::Null, 1).unwrap();
+            let (mut restored, _) = checkpoint::load(dir.path(), None).unwrap();
+            assert_eq!(state(&restored), state(&agent));
+            assert_eq!(published(&restored), got);
+            let next = &batches(7)[6];
+            agent.update(next).unwrap();
+            restored.update(next).unwrap();
+            assert_eq!(published(&restored), published(&agent), "{algorithm:?}: resumed average");
+            let exported = dir.path().join("exported.safetensors");
+            checkpoint::export_policy(&agent, &exported).unwrap();
+            let file: HashMap<String, Vec<f32>> = checkpoint::read_policy(&exported).unwrap().tensors.into_iter().map(|(n, _, v)| (n, v)).collect();
+            assert_eq!(file, published(&agent));
+        }
+    }
+    for bad in [0.0, -0.1, 1.5, f64::NAN] {
+        let c = LearnerConfig { policy_average: Some(bad), ..cfg(AlgorithmKind::Sac) };
+        let e = Agent::new(&c, 5, 2).unwrap_err();
+        assert!(e.to_string().contains("policy_average"), "{bad}: {e}");
+    }
+}
+
 fn saved(algorithm: AlgorithmKind) -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let path = checkpoint::save(dir.path(), &trained(algorithm, 1), &serde_json::Value::Null, 1).unwrap();
@@ -175,6 +234,13 @@ fn other_algorithms_dimensions_and_format_versions_are_mismatches() {
     let e = checkpoint::restore(&mut normed, &path).unwrap_err();
     assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "critic_layer_norm"), "{e}");
     assert!(e.to_string().contains("critic_layer_norm is false, expected true"), "{e}");
+
+    // A running average of the actor is stored only where it is kept.
+    let mut c = cfg(AlgorithmKind::Sac);
+    c.policy_average = Some(0.01);
+    let mut averaging = Agent::new(&c, 5, 2).unwrap();
+    let e = checkpoint::restore(&mut averaging, &path).unwrap_err();
+    assert!(matches!(&e, LearnerError::CheckpointMismatch { what, .. } if what == "policy_average (kept)"), "{e}");
 
     let manifest = path.join(MANIFEST);
     let text = fs::read_to_string(&manifest).unwrap().replace("\"format_version\": 1", "\"format_version\": 2");

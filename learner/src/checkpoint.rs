@@ -380,7 +380,8 @@ pub fn load(path: &Path, device: Option<&str>) -> Result<(Agent, serde_json::Val
 
 /// Restores the checkpoint at `path` into `agent`, which must have the same algorithm,
 /// dimensions, hidden width and critic normalisation (`critic_layer_norm` changes no
-/// tensor's shape, only what the stored critics compute); the agent keeps its own config
+/// tensor's shape, only what the stored critics compute), and must keep a running average of
+/// its actor if the checkpoint does (`policy_average`; its τ̄ may differ); the agent keeps its own config
 /// otherwise (e.g. a changed learning rate or device). Returns the caller's `extra` JSON. On error `agent` may be
 /// partly overwritten: discard it.
 pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, LearnerError> {
@@ -400,6 +401,11 @@ pub fn restore(agent: &mut Agent, path: &Path) -> Result<serde_json::Value, Lear
     }
     if l.state.config.critic_layer_norm != have.critic_layer_norm {
         return Err(mismatch(&l.dir, "critic_layer_norm", have.critic_layer_norm, l.state.config.critic_layer_norm));
+    }
+    // Whether the actor's running average is kept decides whether its tensors are stored.
+    let (stored, kept) = (l.state.config.policy_average.is_some(), have.policy_average.is_some());
+    if stored != kept {
+        return Err(mismatch(&l.dir, "policy_average (kept)", kept, stored));
     }
     agent.restore_state(&l.tensors, l.state.agent).map_err(|reason| mismatch(&l.dir, "tensors", "this agent's layout", reason))?;
     Ok(l.state.extra)

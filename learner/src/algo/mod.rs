@@ -144,11 +144,15 @@ impl Agent {
         crate::malloc::retain_freed_memory();
         let device = crate::device::ToTch::to_tch(crate::device::available(&cfg.device)?);
         let common = Common::new(cfg.clone(), obs_dim, act_dim, device);
-        Ok(match cfg.algorithm {
+        let mut agent = match cfg.algorithm {
             AlgorithmKind::Ddpg => Self::Ddpg(Ddpg::new(common)?),
             AlgorithmKind::Td3 => Self::Td3(Td3::new(common)?),
             AlgorithmKind::Sac => Self::Sac(Sac::new(common)?),
-        })
+        };
+        if cfg.policy_average.is_some() {
+            each!(&mut agent, a => a.c.policy_average = Some(a.actor.net.duplicate_as(ACTOR, AVERAGE)));
+        }
+        Ok(agent)
     }
 
     /// One gradient step on `batch` (TD3: the actor and the targets only every
@@ -162,13 +166,16 @@ impl Agent {
         // The one place that chooses the path: the hand-written CPU passes when configured,
         // on the CPU, and the batch is plain host f32; libtorch's autograd otherwise. Both draw
         // their noise through the same per-algorithm function, so they agree draw for draw.
-        if c.cfg.fused_update
+        let stats = if c.cfg.fused_update
             && c.device == tch::Device::Cpu
             && let Some(host) = batch.host()
         {
-            return each!(self, a => a.update_fused(&host));
-        }
-        each!(self, a => a.update(batch))
+            each!(self, a => a.update_fused(&host))
+        } else {
+            each!(self, a => a.update(batch))
+        }?;
+        each!(self, a => a.c.average_policy(&a.actor.net));
+        Ok(stats)
     }
 
     /// Actions `[N, act_dim]` in [−1, 1] for observations `[N, obs_dim]` (moved to the
@@ -206,9 +213,18 @@ impl Agent {
         self.common_mut().explore.reset();
     }
 
-    /// The policy network alone: `(name, CPU f32 tensor)` in the layout of the module docs.
+    /// The policy network alone: `(name, CPU f32 tensor)` in the layout of the module docs:
+    /// the running average of the actor's weights when `policy_average` is set (under the
+    /// actor's names), the trained actor otherwise.
     pub fn policy_tensors(&self) -> Vec<(String, Tensor)> {
-        each!(self, a => a.actor_params().named_cpu())
+        each!(self, a => match &a.c.policy_average {
+            Some(avg) => avg
+                .named_cpu()
+                .into_iter()
+                .map(|(name, t)| (name.strip_prefix(AVERAGE).map_or(name.clone(), |rest| format!("{ACTOR}{rest}")), t))
+                .collect(),
+            None => a.actor_params().named_cpu(),
+        })
     }
 
     /// Metadata to publish with [`Agent::policy_tensors`]: `algorithm` (`ddpg`/`td3`/`sac`),
@@ -406,7 +422,14 @@ pub(crate) struct Common {
     pub explore: Explorer,
     /// Successful updates.
     pub updates: u64,
+    /// The running average of the actor's weights (`LearnerConfig::policy_average`), named
+    /// `actor_average.*`; what [`Agent::policy_tensors`] publishes when set.
+    pub policy_average: Option<ParamSet>,
 }
+
+/// The leading name of the actor's parameters, and of their running average.
+const ACTOR: &str = "actor";
+const AVERAGE: &str = "actor_average";
 
 /// Stream ids that split one seed into independent PCG64 streams.
 const STREAM_INIT: u64 = 0x1a17;
@@ -434,6 +457,15 @@ impl Common {
             act_dim,
             device,
             updates: 0,
+            policy_average: None,
+        }
+    }
+
+    /// After the `updates`-th update: θ̄ ← θ̄ + max(τ̄, 1/updates)·(θ − θ̄) when the average
+    /// is kept (`LearnerConfig::policy_average`).
+    pub fn average_policy(&mut self, actor: &ParamSet) {
+        if let (Some(avg), Some(tau)) = (self.policy_average.as_mut(), self.cfg.policy_average) {
+            avg.soft_update_from(actor, tau.max(1.0 / self.updates.max(1) as f64));
         }
     }
 

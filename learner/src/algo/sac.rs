@@ -243,11 +243,15 @@ impl Sac {
     }
 
     pub(crate) fn nets(&self) -> Vec<&ParamSet> {
-        vec![&self.actor.net, &self.critic.net, &self.target_critic, &self.log_alpha.net]
+        let mut nets = vec![&self.actor.net, &self.critic.net, &self.target_critic, &self.log_alpha.net];
+        nets.extend(self.c.policy_average.as_ref());
+        nets
     }
 
     pub(crate) fn nets_mut(&mut self) -> Vec<&mut ParamSet> {
-        vec![&mut self.actor.net, &mut self.critic.net, &mut self.target_critic, &mut self.log_alpha.net]
+        let mut nets = vec![&mut self.actor.net, &mut self.critic.net, &mut self.target_critic, &mut self.log_alpha.net];
+        nets.extend(self.c.policy_average.as_mut());
+        nets
     }
 
     pub(crate) fn opts(&self) -> Vec<(&'static str, &Adam)> {
