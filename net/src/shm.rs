@@ -371,6 +371,18 @@ struct InFlight {
     answer: Option<Ack>,
 }
 
+/// Moves the answered batches at the front of the window into `ready`, so that acks come out
+/// in the order the batches were sent. The ingest answers one writer's batches in order, but
+/// one pass of [`ShmWriter::collect`] can find batch 4 answered after it found batch 1 not yet
+/// answered; batch 4 then waits in the window until batch 1's answer is read.
+fn hand_over_answered(window: &mut VecDeque<InFlight>, ready: &mut VecDeque<Ack>) {
+    while window.front().is_some_and(|e| e.answer.is_some()) {
+        if let Some(a) = window.pop_front().and_then(|e| e.answer) {
+            ready.push_back(a);
+        }
+    }
+}
+
 /// Why the connection cannot be used until [`ShmWriter::reconnect`].
 #[derive(Clone, Debug)]
 enum Broken {
@@ -675,7 +687,8 @@ impl ShmWriter {
         }
     }
 
-    /// Moves answered batches out of the window into `ready`, in window order.
+    /// Receives the answers that arrived and moves answered batches out of the window into
+    /// `ready`, in window order (see [`hand_over_answered`]).
     fn collect(&mut self) {
         let mut broken = None;
         let nonce = self.conn.as_ref().map_or(0, |c| c.nonce);
@@ -726,11 +739,7 @@ impl ShmWriter {
                 }
             }
         }
-        while let Some(pos) = self.window.iter().position(|e| e.answer.is_some()) {
-            if let Some(Some(a)) = self.window.remove(pos).map(|e| e.answer) {
-                self.ready.push_back(a);
-            }
-        }
+        hand_over_answered(&mut self.window, &mut self.ready);
         if let Some(b) = broken {
             self.set_broken(b);
         }
@@ -746,5 +755,45 @@ impl ShmWriter {
         if self.conn.as_ref().is_some_and(|c| !c.server_alive()) {
             self.set_broken(Broken::Unavailable("the ingest server is gone (stopped or died)".into()));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn in_flight(sequence: u64, answered: bool) -> InFlight {
+        let answer = answered.then(|| Ack::Stored(InsertAck { actor_id: "a".into(), sequence, accepted_rows: 1, duplicate: false, table_size: sequence }));
+        InFlight { sequence, bytes: Vec::new(), pending: None, answer }
+    }
+
+    fn sequences(ready: &VecDeque<Ack>) -> Vec<u64> {
+        ready
+            .iter()
+            .map(|a| match a {
+                Ack::Stored(s) => s.sequence,
+                Ack::Rejected { sequence, .. } => *sequence,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn acks_are_handed_over_in_the_order_the_batches_were_sent() {
+        // Batches 4 and 5 were seen answered in a pass that found 1..=3 not yet answered.
+        let mut window: VecDeque<InFlight> = (1..=5).map(|s| in_flight(s, s >= 4)).collect();
+        let mut ready = VecDeque::new();
+        hand_over_answered(&mut window, &mut ready);
+        assert!(ready.is_empty());
+        assert_eq!(window.len(), 5);
+        // The next pass reads 1 and 3; 2 still holds 3, 4 and 5 back.
+        for e in window.iter_mut().filter(|e| e.sequence == 1 || e.sequence == 3) {
+            *e = in_flight(e.sequence, true);
+        }
+        hand_over_answered(&mut window, &mut ready);
+        assert_eq!(sequences(&ready), [1]);
+        window[0] = in_flight(2, true);
+        hand_over_answered(&mut window, &mut ready);
+        assert_eq!(sequences(&ready), [1, 2, 3, 4, 5]);
+        assert!(window.is_empty());
     }
 }
