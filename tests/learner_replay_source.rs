@@ -330,7 +330,7 @@ fn errors_retrying_cannot_fix_stop_the_source_with_a_clear_message() {
     for bad in [
         SampleConfig { batch_size: 0, ..config(token()) },
         SampleConfig { queue_depth: 0, ..config(token()) },
-        SampleConfig { importance_beta: 1.5, ..config(token()) },
+        SampleConfig { importance_beta: Some(1.5), ..config(token()) },
         config(GrpcEndpoint::new("http://[not a uri")),
         config(GrpcEndpoint::new("https://127.0.0.1:1")),
         config(replay.endpoint().with_token("new\nline")),

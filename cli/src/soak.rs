@@ -267,7 +267,7 @@ async fn sample_stream(j: usize, addr: SocketAddr, table: String, a: Arc<SoakArg
                 prefetch: 2,
                 timeout_ms: 0,
                 max_batches: 0,
-                importance_beta: 0.4,
+                importance_beta: Some(0.4),
                 float_columns_as_bytes: true,
             };
             let stream = c.sample(req).await.context("opening Sample")?.into_inner();

@@ -87,8 +87,9 @@ pub struct SampleConfig {
     pub server_prefetch: u32,
     /// Minibatches decoded and waiting on this side, ready for `next_batch` [default 4].
     pub queue_depth: usize,
-    /// Importance-sampling exponent β in [0, 1] (SampleRequest.importance_beta) [default 0].
-    pub importance_beta: f32,
+    /// Importance-sampling exponent β in [0, 1] (SampleRequest.importance_beta) [default
+    /// `None`: the table's own β, `replay.sampler.beta`, 0 for a uniform table].
+    pub importance_beta: Option<f32>,
     /// Observation and action lengths the learner was built for; when set, a server whose
     /// table has other dims stops the client with a clear error instead of feeding it.
     pub expected_dims: Option<(usize, usize)>,
@@ -110,7 +111,7 @@ impl SampleConfig {
             batch_size,
             server_prefetch: 4,
             queue_depth: 4,
-            importance_beta: 0.0,
+            importance_beta: None,
             expected_dims: None,
             backoff_initial: Duration::from_millis(100),
             backoff_max: Duration::from_secs(5),
@@ -126,8 +127,10 @@ impl SampleConfig {
         if self.queue_depth == 0 || self.priority_queue_depth == 0 {
             return bad("queue_depth and priority_queue_depth must be >= 1".into());
         }
-        if !(0.0..=1.0).contains(&self.importance_beta) {
-            return bad(format!("importance_beta is {}, must be in [0, 1]", self.importance_beta));
+        if let Some(beta) = self.importance_beta
+            && !(0.0..=1.0).contains(&beta)
+        {
+            return bad(format!("importance_beta is {beta}, must be in [0, 1]"));
         }
         if self.backoff_initial.is_zero() || self.backoff_max < self.backoff_initial {
             return bad("backoff_initial must be > 0 and <= backoff_max".into());
@@ -613,7 +616,7 @@ mod tests {
         for (bad, needle) in [
             (SampleConfig { batch_size: 0, ..unreachable() }, "batch_size"),
             (SampleConfig { queue_depth: 0, ..unreachable() }, "queue_depth"),
-            (SampleConfig { importance_beta: 1.5, ..unreachable() }, "importance_beta"),
+            (SampleConfig { importance_beta: Some(1.5), ..unreachable() }, "importance_beta"),
             (SampleConfig { backoff_initial: Duration::ZERO, ..unreachable() }, "backoff_initial"),
             (SampleConfig { expected_dims: Some((0, 2)), ..unreachable() }, "expected_dims"),
         ] {

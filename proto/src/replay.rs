@@ -8,7 +8,7 @@ use crate::v1::{PriorityUpdate, RegisterActorRequest, SampleRequest};
 
 impl SampleRequest {
     /// Checks a request that opens a Sample stream: protocol version, `batch_size` in
-    /// `1..=max_rows`, `importance_beta` in [0, 1]. `table`, `prefetch` (clamped, never
+    /// `1..=max_rows`, `importance_beta` unset or in [0, 1]. `table`, `prefetch` (clamped, never
     /// rejected), `timeout_ms` and `max_batches` need the server's configuration and are left
     /// to it. Returns `batch_size`.
     pub fn validate(&self, max_rows: usize) -> Result<usize, ProtoError> {
@@ -19,9 +19,11 @@ impl SampleRequest {
         if u64::from(self.batch_size) > max_rows as u64 {
             return Err(ProtoError::InvalidField { field: "batch_size", reason: format!("is {}, the limit is {max_rows}", self.batch_size) });
         }
-        // NaN fails the range test too.
-        if !(0.0..=1.0).contains(&self.importance_beta) {
-            return Err(ProtoError::InvalidField { field: "importance_beta", reason: format!("is {}, must be in [0, 1]", self.importance_beta) });
+        // NaN fails the range test too. Unset: the table's own beta.
+        if let Some(beta) = self.importance_beta
+            && !(0.0..=1.0).contains(&beta)
+        {
+            return Err(ProtoError::InvalidField { field: "importance_beta", reason: format!("is {beta}, must be in [0, 1]") });
         }
         Ok(self.batch_size as usize)
     }

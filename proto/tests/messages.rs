@@ -72,8 +72,10 @@ fn sampled_batch_rejects_missing_keys() {
 
 #[test]
 fn sample_request_rejects_zero_or_oversized_batch_and_beta_outside_unit_interval() {
-    let request = |batch_size, importance_beta| SampleRequest { protocol_version: V1, batch_size, importance_beta, ..SampleRequest::default() };
+    let request = |batch_size, beta| SampleRequest { protocol_version: V1, batch_size, importance_beta: Some(beta), ..SampleRequest::default() };
     assert_eq!(request(256, 0.4).validate(1024), Ok(256));
+    // Unset: the table's own beta.
+    assert_eq!(SampleRequest { protocol_version: V1, batch_size: 256, ..SampleRequest::default() }.validate(1024), Ok(256));
     for (batch_size, beta, field) in [(0, 0.4, "batch_size"), (1025, 0.4, "batch_size"), (256, 1.5, "importance_beta"), (256, f32::NAN, "importance_beta")] {
         let err = request(batch_size, beta).validate(1024).unwrap_err();
         assert!(matches!(err, ProtoError::InvalidField { field: f, .. } if f == field), "{batch_size}, {beta}: {err:?}");

@@ -166,7 +166,7 @@ pub fn grpc_sample(rows: usize, obs_dim: usize, batch: u32, prefetch: u32, durat
             prefetch,
             timeout_ms: 5_000,
             max_batches: 0,
-            importance_beta: 0.0,
+            importance_beta: None,
             float_columns_as_bytes: true,
         };
         let mut stream = c.sample(req).await.expect("sample stream").into_inner();

@@ -17,8 +17,9 @@ pub enum SamplerConfig {
         /// α, how much prioritisation is used [inferred, Schaul et al.: 0.6].
         #[serde(default = "default_alpha")]
         alpha: f64,
-        /// β, importance-sampling correction used when a request does not set one [inferred,
-        /// Schaul et al.: 0.4, annealed towards 1 by the learner].
+        /// β, importance-sampling correction used when a request does not set one, as
+        /// `mapless-learner`'s Sample stream does not [inferred, Schaul et al.: 0.4, which
+        /// they anneal towards 1; here it stays fixed, as Acme's DQN keeps its exponent].
         #[serde(default = "default_beta")]
         beta: f64,
         /// Added to every |TD error| update so no item becomes unsampleable [inferred: 1e-6].

@@ -323,7 +323,7 @@ pub fn replay_requests(data: &[u8]) {
                 let Ok(rows) = req.validate(cfg.max_sample_rows) else { continue };
                 let floats = if req.float_columns_as_bytes { FloatEncoding::F32Le } else { FloatEncoding::Packed };
                 let first = model.first_key();
-                match table.sample_as(rows, Some(f64::from(req.importance_beta)), Some(Instant::now()), floats) {
+                match table.sample_as(rows, req.importance_beta.map(f64::from), Some(Instant::now()), floats) {
                     Ok(batch) => {
                         if let Err(e) = batch.validate(OBS_DIM, ACT_DIM, cfg.max_sample_rows) {
                             panic!("a minibatch that does not validate: {e}; probabilities {:?} weights {:?}", batch.probabilities, batch.importance_weights);
@@ -336,7 +336,7 @@ pub fn replay_requests(data: &[u8]) {
                         }
                         let unit = |x: f64| x > 0.0 && x <= 1.0;
                         assert!(batch.probabilities.iter().all(|&p| unit(p)), "probabilities outside (0, 1]: {:?}", batch.probabilities);
-                        assert!(batch.importance_weights.iter().all(|&w| unit(f64::from(w))), "importance weights outside (0, 1]: {:?} (β {})", batch.importance_weights, req.importance_beta);
+                        assert!(batch.importance_weights.iter().all(|&w| unit(f64::from(w))), "importance weights outside (0, 1]: {:?} (β {:?})", batch.importance_weights, req.importance_beta);
                     }
                     Err(ReplayError::DeadlineExceeded { .. }) => assert_eq!(table.size(), 0, "a table of {} rows refused to sample {rows}", table.size()),
                     Err(e) => panic!("a Sample request that validates ({req:?}) failed: {e}"),

@@ -517,9 +517,9 @@ impl ReplayService for ReplayGrpc {
                 self.table.config().name
             )));
         };
-        span.in_scope(|| info!(timeout_ms = req.timeout_ms, importance_beta = req.importance_beta, float_columns_as_bytes = req.float_columns_as_bytes, "sample stream opened"));
+        span.in_scope(|| info!(timeout_ms = req.timeout_ms, importance_beta = ?req.importance_beta, float_columns_as_bytes = req.float_columns_as_bytes, "sample stream opened"));
         let (tx, rx) = mpsc::channel(prefetch as usize);
-        let stream = SampleSession { _slot: slot, table: Arc::clone(&self.table), rows, beta: Some(f64::from(req.importance_beta)), floats, timeout_ms: req.timeout_ms, stop: self.stop_flag(), tx };
+        let stream = SampleSession { _slot: slot, table: Arc::clone(&self.table), rows, beta: req.importance_beta.map(f64::from), floats, timeout_ms: req.timeout_ms, stop: self.stop_flag(), tx };
         tokio::spawn(stream.run(req.max_batches).instrument(span));
         Ok(Response::new(ReceiverStream::new(rx)))
     }

@@ -148,7 +148,7 @@ async fn kill_9_mid_stream_loses_no_acknowledged_batch_and_resends_insert_nothin
             prefetch: 2,
             timeout_ms: 5000,
             max_batches: 5,
-            importance_beta: 0.0,
+            importance_beta: None,
             float_columns_as_bytes: false,
         })
         .await

@@ -76,7 +76,7 @@ async fn sample(c: &mut ReplayServiceClient<Channel>, rows: u32) -> Result<usize
         prefetch: 1,
         timeout_ms: 5_000,
         max_batches: 1,
-        importance_beta: 0.0,
+        importance_beta: None,
         float_columns_as_bytes: false,
     };
     let mut s = c.sample(req).await?.into_inner();

@@ -137,7 +137,7 @@ fn seeds() -> Vec<(&'static str, String, Vec<u8>)> {
     let tagged = |kind: u8, bytes: Vec<u8>| [vec![kind], bytes].concat();
     let v1 = ProtocolVersion::V1 as i32;
     let sample = |batch_size: u32, importance_beta: f32, float_columns_as_bytes: bool| {
-        tagged(1, SampleRequest { protocol_version: v1, batch_size, importance_beta, float_columns_as_bytes, ..Default::default() }.encode_to_vec())
+        tagged(1, SampleRequest { protocol_version: v1, batch_size, importance_beta: Some(importance_beta), float_columns_as_bytes, ..Default::default() }.encode_to_vec())
     };
     let priorities = |keys: Vec<u64>, priorities: Vec<f64>| tagged(2, PriorityUpdate { protocol_version: v1, keys, priorities, ..Default::default() }.encode_to_vec());
     let mut session = vec![sample(4, 0.4, false)]; // an empty table: the rate limiter's deadline

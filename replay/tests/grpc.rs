@@ -165,7 +165,7 @@ fn health(info: &ServerInfoResponse, _table: &Table, actor: &str) -> (u64, Strin
 }
 
 fn sample_request(batch_size: u32) -> SampleRequest {
-    SampleRequest { protocol_version: V1, table: String::new(), batch_size, prefetch: 1, timeout_ms: 5_000, max_batches: 1, importance_beta: 0.0, float_columns_as_bytes: false }
+    SampleRequest { protocol_version: V1, table: String::new(), batch_size, prefetch: 1, timeout_ms: 5_000, max_batches: 1, importance_beta: None, float_columns_as_bytes: false }
 }
 
 async fn sample_all(client: &mut ReplayServiceClient<Channel>, req: impl tonic::IntoRequest<SampleRequest>) -> (Vec<SampledBatch>, Option<Status>) {
@@ -472,7 +472,7 @@ async fn each_bad_input_gets_its_precise_status_and_leaves_the_table_untouched()
         (SampleRequest { table: "other".into(), ..sample_request(4) }, Code::NotFound),
         (sample_request(0), Code::InvalidArgument),
         (sample_request(101), Code::InvalidArgument),
-        (SampleRequest { importance_beta: 1.5, ..sample_request(4) }, Code::InvalidArgument),
+        (SampleRequest { importance_beta: Some(1.5), ..sample_request(4) }, Code::InvalidArgument),
     ];
     for (req, code) in bad_samples {
         let (batches, end) = sample_all(&mut client, req.clone()).await;
@@ -632,8 +632,39 @@ async fn update_priorities_sets_known_keys_and_counts_evicted_ones() {
     assert_eq!((r.updated, r.unknown_keys), (known, 1));
     let status = client.update_priorities(PriorityUpdate { protocol_version: V1, table: String::new(), keys: vec![1], priorities: vec![-1.0] }).await.expect_err("negative priority");
     assert_eq!(status.code(), Code::InvalidArgument);
-    let (batches, _) = sample_all(&mut client, SampleRequest { importance_beta: 1.0, ..sample_request(8) }).await;
+    let (batches, _) = sample_all(&mut client, SampleRequest { importance_beta: Some(1.0), ..sample_request(8) }).await;
     assert!(batches[0].importance_weights.iter().all(|w| *w > 0.0 && *w <= 1.0));
+    h.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_without_beta_gets_the_tables_beta_and_one_with_beta_gets_its_own() {
+    let cfg = TableConfig { sampler: SamplerConfig::Prioritized { alpha: 1.0, beta: 0.4, epsilon: 0.0 }, ..table_cfg(20) };
+    let h = Harness::start(cfg).await;
+    let mut client = h.client().await;
+    insert_all(&mut client, vec![batch("actor-b", 1, 0.0, 20)]).await;
+    let (batches, _) = sample_all(&mut client, sample_request(20)).await;
+    // Priorities 1..=20 over the sampled keys, so that rows are drawn unevenly.
+    let mut keys = batches[0].keys.clone();
+    keys.sort_unstable();
+    keys.dedup();
+    let priorities: Vec<f64> = (1..=keys.len()).map(|p| p as f64).collect();
+    client.update_priorities(PriorityUpdate { protocol_version: V1, table: String::new(), keys, priorities }).await.expect("update");
+    // w_i = (N·P(i))^−β / max_j w_j, from the batch's own probabilities.
+    let expected = |b: &SampledBatch, beta: f64| -> Vec<f32> {
+        let raw: Vec<f64> = b.probabilities.iter().map(|p| (b.table_size as f64 * p).powf(-beta)).collect();
+        let max = raw.iter().cloned().fold(0.0, f64::max);
+        raw.iter().map(|w| (w / max) as f32).collect()
+    };
+    for (request, beta) in [(None, 0.4), (Some(0.0), 0.0), (Some(1.0), 1.0)] {
+        let (batches, _) = sample_all(&mut client, SampleRequest { importance_beta: request, ..sample_request(20) }).await;
+        let b = &batches[0];
+        assert!(b.probabilities.iter().any(|p| (p - b.probabilities[0]).abs() > 1e-9), "rows drawn evenly");
+        for (got, want) in b.importance_weights.iter().zip(expected(b, beta)) {
+            assert!((got - want).abs() < 1e-5, "request {request:?}: weight {got}, expected {want} for β = {beta}");
+        }
+        assert_eq!(b.importance_weights.iter().all(|w| *w == 1.0), beta == 0.0, "request {request:?}");
+    }
     h.shutdown().await;
 }
 

@@ -235,11 +235,13 @@ pub struct SampleRequest {
     pub max_batches: u64,
     /// Exponent beta of the importance-sampling correction that the server applies when it
     /// fills SampledBatch.importance_weights (Schaul et al., "Prioritized Experience Replay",
-    /// ICLR 2016, Algorithm 1 line 10). In \[0, 1\]; 0 (the default) yields weights of exactly 1.
-    /// A learner that anneals beta recomputes the weights from `probabilities` and
-    /// `table_size` instead of reopening the stream.
-    #[prost(float, tag = "7")]
-    pub importance_beta: f32,
+    /// ICLR 2016, Algorithm 1 line 10). In \[0, 1\]; 0 yields weights of exactly 1. Unset: the
+    /// table's own beta (the replay service's `sampler.beta`; 0 for a uniform table), so that a
+    /// learner needs no copy of the replay's configuration. A learner that anneals beta sets it,
+    /// or recomputes the weights from `probabilities` and `table_size` instead of reopening
+    /// the stream.
+    #[prost(float, optional, tag = "7")]
+    pub importance_beta: ::core::option::Option<f32>,
     /// When true, the server sends the float columns of every SampledBatch (obs, action,
     /// reward, next_obs) in their `bytes *_f32le` encoding instead of the packed
     /// `repeated float` fields: the same floats, little-endian binary32, which a client decodes
@@ -287,8 +289,9 @@ pub struct SampledBatch {
     #[prost(double, repeated, tag = "8")]
     pub probabilities: ::prost::alloc::vec::Vec<f64>,
     /// Per row: w_i = (table_size * P(i))^-beta / max_j w_j with beta = SampleRequest.
-    /// importance_beta and the max taken over this minibatch, so 0 \< w_i \<= 1. All 1 for
-    /// uniform tables or beta = 0. num_rows values.
+    /// importance_beta (the table's beta where the request leaves it unset) and the max taken
+    /// over this minibatch, so 0 \< w_i \<= 1. All 1 for uniform tables or beta = 0. num_rows
+    /// values.
     #[prost(float, repeated, tag = "9")]
     pub importance_weights: ::prost::alloc::vec::Vec<f32>,
     /// Observations s_t, row-major: num_rows * obs_dim floats.
