@@ -26,7 +26,8 @@ pub struct DriverConfig {
     /// Write TensorBoard scalars and a progress event every M updates (M ≥ 1) [ours: 200].
     pub metrics_every: u64,
     /// Send |TD error| back as new priorities (prioritised replay tables only) [paper: uniform
-    /// replay, so off].
+    /// replay, so off]. `mapless train` sets it from `replay.sampler.kind`: on for a
+    /// prioritised table, which without it samples as a uniform one.
     pub send_priorities: bool,
 }
 

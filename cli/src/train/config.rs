@@ -307,6 +307,14 @@ impl TrainConfig {
             bail!("learner.seed is {}, the run's seed {}: the learner takes the run's `seed`, set that", self.learner.seed, self.seed);
         }
         self.learner.seed = self.seed;
+        // A prioritised table learns its priorities only from the learner's |TD errors|: the
+        // sampler's kind decides whether they are sent (without them every row keeps the
+        // priority it was stored with and prioritised replay samples as uniform replay does).
+        let prioritised = matches!(self.replay.sampler, mapless_replay::SamplerConfig::Prioritized { .. });
+        if self.driver.send_priorities && !prioritised {
+            bail!("driver.send_priorities is set, but replay.sampler is uniform, which takes no priorities: it follows replay.sampler.kind, leave it out");
+        }
+        self.driver.send_priorities = prioritised;
         // An actor sends up to `batch_rows` + one row per vehicle at a time: the table takes
         // at least that (more vehicles than the default covers raise it, and the rate
         // limiter's check below then says if `error_buffer` must grow with it).
@@ -905,6 +913,12 @@ mod tests {
         assert_eq!(cfg.replay.rate_limiter.samples_per_insert, Some(128.0));
         assert_eq!(cfg.replay.rate_limiter.error_buffer, default_table().rate_limiter.error_buffer);
         assert_eq!((cfg.driver.publish_every, cfg.driver.checkpoint_every), (10, DriverConfig::default().checkpoint_every));
+        // A prioritised table gets the learner's priorities; a uniform one cannot be sent any.
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["replay.sampler.kind=prioritized"])).unwrap();
+        assert!(matches!(cfg.replay.sampler, mapless_replay::SamplerConfig::Prioritized { alpha, beta, .. } if alpha == 0.6 && beta == 0.4));
+        assert!(cfg.driver.send_priorities);
+        let err = load_config(&train_args("env1-sac", &["driver.send_priorities=true"])).unwrap_err();
+        assert!(format!("{err:#}").contains("replay.sampler.kind"), "{err:#}");
         // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
         let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=200"])).unwrap();
         assert_eq!(cfg.replay.max_batch_rows, 64 + 200);
