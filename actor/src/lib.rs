@@ -6,6 +6,7 @@
 //! - [`sink`]: which replay client an actor delivers its transition batches with (iceoryx2 or
 //!   gRPC; the exactly-once clients themselves are `mapless_net::insert`);
 //! - [`identity`]: which index a process runs as (`--index N`, or `auto`: a slot from the replay);
+//! - [`nstep`]: n-step rows (discounted sums of n rewards) when the learner bootstraps n steps ahead;
 //! - [`run`]: one actor process's loop (the `mapless-actor` binary).
 //!
 //! How it reaches the replay, the learner's weights and the stats collector (endpoints,
@@ -15,6 +16,7 @@
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod identity;
+pub mod nstep;
 pub mod policy;
 pub mod run;
 pub mod sink;

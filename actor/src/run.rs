@@ -29,6 +29,7 @@ use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 
+use crate::nstep::{NStepAdder, NStepReturns};
 use crate::sink::{InsertClient, InsertStats, ShmInsertClient, Sink};
 use crate::{ActMode, ExplorationNoise, NoiseProcess, Policy};
 
@@ -98,6 +99,11 @@ pub struct ActorConfig {
     /// Batches unacknowledged at most.
     #[serde(default = "default_in_flight")]
     pub max_in_flight: usize,
+    /// n-step rows (`crate::nstep`), handed over from `learner.n_step` and `learner.gamma`;
+    /// none: one row per step, as the paper's one-step targets take. Published weights must
+    /// say the same n (snapshot metadata `n_step`), else they are refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub n_step: Option<NStepReturns>,
     /// The replay.
     pub replay: ReplayTarget,
     /// The learner's weights service, e.g. `http://127.0.0.1:50052`.
@@ -146,6 +152,9 @@ impl ActorConfig {
         if !(0.0..=1.0).contains(&self.exploration.mirror_share) {
             return Err(format!("exploration.mirror_share must be a share in [0, 1], got {}", self.exploration.mirror_share));
         }
+        if let Some(r) = &self.n_step {
+            r.validate()?;
+        }
         Ok(())
     }
 }
@@ -161,6 +170,9 @@ pub struct ActorReport {
     pub bad_snapshots: u64,
     /// Transitions stored as their mirror image (`exploration.mirror_share`).
     pub mirrored_rows: u64,
+    /// Steps stored in no row: the last n − 1 of episodes that hit the step limit, with
+    /// n-step rows (`n_step`).
+    pub n_step_dropped: u64,
     pub unacked_at_exit: bool,
     pub sink: InsertStats,
 }
@@ -269,6 +281,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let mut episode_ids: Vec<u64> = vec![0; n];
     let mut out = VecStep::default();
     let mut builder = TransitionBatchBuilder::with_capacity(d, 2, cfg.batch_rows + n);
+    let mut adder = NStepAdder::new(cfg.n_step, n, d, 2);
     let mut sequence = 0u64;
     let mut last_log = Instant::now();
     let (mut ep_window, mut ret_window) = (0u64, 0.0f64);
@@ -278,8 +291,14 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         if weights_rx.has_changed().unwrap_or(false) {
             let snap = weights_rx.borrow_and_update().clone();
             if let Some(s) = snap {
-                match Policy::from_snapshot(&s) {
-                    Ok(p) if p.obs_dim() == d && p.act_dim() == 2 => {
+                // Weights whose targets bootstrap over another n than these rows sum: refused.
+                let checked = Policy::from_snapshot(&s).map(|p| (p, crate::nstep::check_snapshot(&s.metadata, adder.n())));
+                match checked {
+                    Ok((_, Err(reason))) => {
+                        report.bad_snapshots += 1;
+                        tracing::error!(%reason, version = s.version, "published policy ignored; keeping the previous policy");
+                    }
+                    Ok((p, Ok(()))) if p.obs_dim() == d && p.act_dim() == 2 => {
                         if policy.is_none() {
                             tracing::info!(version = p.version(), "first policy weights arrived");
                         }
@@ -287,7 +306,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
                         report.policies_loaded += 1;
                         policy = Some(p);
                     }
-                    Ok(p) => {
+                    Ok((p, Ok(()))) => {
                         report.bad_snapshots += 1;
                         tracing::error!(obs_dim = p.obs_dim(), act_dim = p.act_dim(), expected_obs = d, "published policy has other dimensions than this map's observations; ignored");
                     }
@@ -318,28 +337,30 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         }
         envs.step(&actions, &mut out)?;
         for i in 0..n {
-            let (o, a, o2) = (&obs[i * d..(i + 1) * d], [actions[2 * i], actions[2 * i + 1]], &out.next_obs[i * d..(i + 1) * d]);
-            let mirrored = mirror_share > 0.0 && mirror_rng.random::<f64>() < mirror_share;
-            let (o, a, o2) = if mirrored {
-                cfg.env.mirror_obs(o, &mut m_obs);
-                cfg.env.mirror_obs(o2, &mut m_next);
-                report.mirrored_rows += 1;
-                (&m_obs[..], EnvConfig::mirror_action(a), &m_next[..])
-            } else {
-                (o, a, o2)
-            };
-            builder.push(Transition {
-                obs: o,
-                action: &a,
+            let step = Transition {
+                obs: &obs[i * d..(i + 1) * d],
+                action: &actions[2 * i..2 * i + 2],
                 reward: out.reward[i],
-                next_obs: o2,
+                next_obs: &out.next_obs[i * d..(i + 1) * d],
                 terminal: out.terminal[i],
                 truncated: out.truncated[i],
                 episode_id: ((i as u64) << 40) | episode_ids[i],
                 step: step_idx[i],
                 policy_version: version,
+            };
+            adder.step(i, step, |row| {
+                if mirror_share > 0.0 && mirror_rng.random::<f64>() < mirror_share {
+                    cfg.env.mirror_obs(row.obs, &mut m_obs);
+                    cfg.env.mirror_obs(row.next_obs, &mut m_next);
+                    report.mirrored_rows += 1;
+                    let a = EnvConfig::mirror_action([row.action[0], row.action[1]]);
+                    builder.push(Transition { obs: &m_obs, action: &a, next_obs: &m_next, ..row })
+                } else {
+                    builder.push(row)
+                }
             })?;
         }
+        report.n_step_dropped = adder.dropped();
         report.vehicle_steps += n as u64;
         for (i, s) in out.finished.drain(..) {
             noise.reset(i);

@@ -115,6 +115,7 @@ fn actor_config(dir: &Path, replay: SocketAddr) -> PathBuf {
         vehicles: 2,
         // Random actions throughout: no learner in this test (the weights address refuses).
         exploration: ExplorationSettings { warmup_steps: u64::MAX, noise: None, mirror_share: 0.0 },
+        n_step: None,
         batch_rows: 16,
         max_in_flight: 8,
         replay: ReplayTarget::Grpc { uri: format!("http://{replay}") },

@@ -77,6 +77,15 @@ pub struct LearnerConfig {
     pub hidden_width: i64,
     /// γ, discount factor [paper Table I: 0.995].
     pub gamma: f64,
+    /// n of n-step TD targets: each replayed row carries the discounted sum of n rewards and
+    /// the observation n steps later (the actors build such rows, `mapless_actor::nstep`), and
+    /// eqs. 2, 7 and 9 bootstrap it with γⁿ instead of γ [paper: 1, one-step targets].
+    /// Beyond the paper, 1 in every paper preset. Its reason: a collision's price reaches the
+    /// states n steps before it in one update instead of n (Sutton 1988; Hessel et al. 2018,
+    /// "Rainbow"; Barth-Maron et al. 2018, D4PG); `explore-sac`'s cave misses are turns begun
+    /// too late (docs/cluster.md). Off-policy, the sum follows the acting policy's own rewards,
+    /// uncorrected, as those agents do.
+    pub n_step: usize,
     /// Actor (policy) learning rate [paper Table I: 5e-5].
     pub actor_lr: f64,
     /// Critic (Q-function) learning rate [paper Table I: 5e-4].
@@ -154,6 +163,7 @@ impl Default for LearnerConfig {
             seed: 0,
             hidden_width: crate::DEFAULT_HIDDEN_WIDTH,
             gamma: 0.995,
+            n_step: 1,
             actor_lr: 5e-5,
             critic_lr: 5e-4,
             tau: 0.001,
@@ -271,6 +281,11 @@ impl Default for SacConfig {
 pub const MAX_HIDDEN_WIDTH: i64 = 16_384;
 
 impl LearnerConfig {
+    /// γⁿ, the discount of the bootstrapped value in every TD target (`n_step`).
+    pub fn bootstrap_discount(&self) -> f64 {
+        self.gamma.powi(self.n_step as i32)
+    }
+
     /// Checks every field's domain; the error names the field.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |field: &'static str, reason: String| Err(ConfigError::InvalidConfig { field, reason });
@@ -282,6 +297,9 @@ impl LearnerConfig {
         }
         if !unit(self.gamma) {
             return bad("gamma", format!("is {}; must be in [0, 1]", self.gamma));
+        }
+        if !(1..=mapless_proto::MAX_N_STEP).contains(&self.n_step) {
+            return bad("n_step", format!("is {}; must be in 1..={}", self.n_step, mapless_proto::MAX_N_STEP));
         }
         if !unit(self.tau) {
             return bad("tau", format!("is {}; must be in [0, 1]", self.tau));

@@ -221,6 +221,30 @@ fn td_target_max_caps_the_targets_of_every_algorithm() {
     assert!(c.validate().is_err(), "an infinite cap is refused");
 }
 
+/// `n_step` bootstraps with γⁿ on both update paths of every algorithm: the same networks,
+/// noise and minibatch give a first update whose targets' mean, less the rewards' mean, is γⁿ⁻¹
+/// times the one-step agent's (y = r + γⁿ(1 − terminal)·v, v unchanged).
+#[test]
+fn n_step_targets_bootstrap_with_gamma_to_the_n_on_both_paths() {
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(8);
+    let b = Minibatch::random(32, OBS, ACT, &mut rng, tch::Device::Cpu).unwrap();
+    let reward_mean = column(&b.reward).iter().sum::<f64>() / 32.0;
+    for kind in [AlgorithmKind::Ddpg, AlgorithmKind::Td3, AlgorithmKind::Sac] {
+        for fused in [true, false] {
+            let target_mean = |n_step: usize| {
+                let c = LearnerConfig { n_step, fused_update: fused, ..cfg(kind) };
+                let stats = Agent::new(&c, OBS, ACT).unwrap().update(&b).unwrap();
+                stats.scalars.iter().find(|(n, _)| *n == metric::TARGET_MEAN).unwrap().1
+            };
+            let (one, three) = (target_mean(1) - reward_mean, target_mean(3) - reward_mean);
+            assert!(one.abs() > 1e-3, "{kind:?}: the bootstrapped part is not negligible ({one})");
+            assert!((three - GAMMA * GAMMA * one).abs() < 1e-5, "{kind:?} fused {fused}: {three} vs γ²·{one}");
+        }
+    }
+    let c = LearnerConfig { n_step: 0, ..cfg(AlgorithmKind::Sac) };
+    assert!(c.validate().unwrap_err().to_string().contains("n_step"));
+}
+
 #[test]
 fn td3_smoothing_noise_is_gaussian_with_sigma_0_45_clipped_to_half() {
     let mut agent = Agent::new(&cfg(AlgorithmKind::Td3), OBS, ACT).unwrap();

@@ -85,6 +85,13 @@ pub const DEFAULT_TABLE: &str = "transitions";
 /// de-duplication table and appear in every log line, so they stay short.
 pub const MAX_ACTOR_ID_BYTES: usize = 128;
 
+/// `WeightsSnapshot.metadata` key of the n a learner bootstraps its TD targets with (absent:
+/// 1): actors that sum another number of rewards per row refuse those weights.
+pub const META_N_STEP: &str = "n_step";
+
+/// Largest n of n-step rows and targets (`learner.n_step`).
+pub const MAX_N_STEP: usize = 64;
+
 /// Longest accepted `RegisterActorRequest.name`, in bytes: a DNS host name (at most 63 bytes
 /// per label) or a container id (64 hex digits) fits, and the actor id derived from the slot
 /// stays within [`MAX_ACTOR_ID_BYTES`] whatever the name.

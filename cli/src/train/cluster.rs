@@ -132,6 +132,7 @@ impl Cluster {
             vehicles: cfg.actors.vehicles,
             exploration: ExplorationSettings { warmup_steps: if resuming { 0 } else { cfg.actors.warmup_steps }, noise: cfg.noise(), mirror_share: cfg.actors.mirror_share },
             batch_rows: cfg.actors.batch_rows,
+            n_step: cfg.n_step_rows(),
             max_in_flight: 8,
             replay: ReplayTarget::Shm { prefix: shm.prefix.clone(), domain: shm.domain.clone(), register: None },
             weights: format!("http://{weights_addr}"),

@@ -5,6 +5,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use mapless_actor::nstep::NStepReturns;
 use mapless_learner_config::{AlgorithmKind, DriverConfig, ExplorationNoise, LearnerConfig};
 use mapless_replay::TableConfig;
 use mapless_sim::{EnvConfig, RewardConfig};
@@ -383,6 +384,12 @@ impl TrainConfig {
             AlgorithmKind::Td3 => Some(self.learner.td3.exploration),
             AlgorithmKind::Sac => None,
         }
+    }
+
+    /// The actors' rows: as many rewards summed per row as the learner's targets bootstrap
+    /// over (`learner.n_step`, its one home); none for one-step rows.
+    pub(crate) fn n_step_rows(&self) -> Option<NStepReturns> {
+        (self.learner.n_step > 1).then_some(NStepReturns { n: self.learner.n_step, gamma: self.learner.gamma })
     }
 }
 
@@ -919,6 +926,12 @@ mod tests {
         assert!(cfg.driver.send_priorities);
         let err = load_config(&train_args("env1-sac", &["driver.send_priorities=true"])).unwrap_err();
         assert!(format!("{err:#}").contains("replay.sampler.kind"), "{err:#}");
+        // n-step targets: the actors sum as many rewards as the learner bootstraps over, with its γ.
+        let (cfg, _, _) = load_config(&train_args("explore-sac", &["learner.n_step=3"])).unwrap();
+        assert_eq!(cfg.n_step_rows(), Some(NStepReturns { n: 3, gamma: 0.995 }));
+        assert_eq!(load_config(&train_args("explore-sac", &[])).unwrap().0.n_step_rows(), None);
+        let err = load_config(&train_args("env1-sac", &["learner.n_step=0"])).unwrap_err();
+        assert!(format!("{err:#}").contains("n_step"), "{err:#}");
         // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
         let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=200"])).unwrap();
         assert_eq!(cfg.replay.max_batch_rows, 64 + 200);

@@ -68,7 +68,7 @@ impl Ddpg {
         let next_action = mlp_forward(self.target_actor.params(), &b.next_obs).tanh();
         let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, &self.c.cfg).get(0);
         let not_done = b.terminal.ones_like() - &b.terminal;
-        cap_targets(&b.reward + not_done * q_next * self.c.cfg.gamma, self.c.cfg.td_target_max)
+        cap_targets(&b.reward + not_done * q_next * self.c.cfg.bootstrap_discount(), self.c.cfg.td_target_max)
     }
 
     /// One update along the paper's equations with libtorch's autograd (module docs). The

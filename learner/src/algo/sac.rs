@@ -178,7 +178,7 @@ impl Sac {
         let q_next = critics(self.target_critic.params(), &b.next_obs, &next.action, &self.c.cfg).amin(0, false);
         let soft_value = q_next - next.log_prob * alpha;
         let not_done = b.terminal.ones_like() - &b.terminal;
-        cap_targets(&b.reward + not_done * soft_value * self.c.cfg.gamma, self.c.cfg.td_target_max)
+        cap_targets(&b.reward + not_done * soft_value * self.c.cfg.bootstrap_discount(), self.c.cfg.td_target_max)
     }
 
     /// The standard normals of one update, `2 · rows · act_dim` into `out`: ε for s′ (the

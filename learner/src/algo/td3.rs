@@ -86,7 +86,7 @@ impl Td3 {
         let next_action = (mlp_forward(self.target_actor.params(), &b.next_obs).tanh() + eps).clamp(-1.0, 1.0);
         let q_next = critics(self.target_critic.params(), &b.next_obs, &next_action, &self.c.cfg).amin(0, false);
         let not_done = b.terminal.ones_like() - &b.terminal;
-        cap_targets(&b.reward + not_done * q_next * self.c.cfg.gamma, self.c.cfg.td_target_max)
+        cap_targets(&b.reward + not_done * q_next * self.c.cfg.bootstrap_discount(), self.c.cfg.td_target_max)
     }
 
     /// One update along the paper's equations with libtorch's autograd (module docs). The

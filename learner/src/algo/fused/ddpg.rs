@@ -19,7 +19,7 @@ impl Ddpg {
         // Eq. 2: y = r + γ(1 − terminal) Q_t(s′, tanh π_t(s′)).
         w.tanh_action(&actor_body, self.target_actor.host().expect("host parameters"), b.next_obs, rows);
         w.critics_forward_at_action(&bodies, self.target_critic.host().expect("host parameters"), b.next_obs, na, rows);
-        w.targets(b, self.c.cfg.gamma, self.c.cfg.td_target_max, |w, i| w.min_q(i));
+        w.targets(b, self.c.cfg.bootstrap_discount(), self.c.cfg.td_target_max, |w, i| w.min_q(i));
         let critic = w.critic_step(&bodies, &mut self.critic, b, na, clip, self.c.updates)?;
 
         // Eqs. 3–5: descend −mean Q(s, tanh π(s)) in θ.

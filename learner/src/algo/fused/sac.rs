@@ -94,7 +94,7 @@ impl Sac {
         head.sample(&w.actor_next.y, eps_next, rows, na, lo, hi);
         let tp = self.target_critic.host().expect("host parameters");
         w.critics_forward(&bodies, tp, b.next_obs, &head.a, na, rows);
-        w.targets(b, self.c.cfg.gamma, self.c.cfg.td_target_max, |w, i| w.min_q(i) - head.log_prob[i] * alpha32);
+        w.targets(b, self.c.cfg.bootstrap_discount(), self.c.cfg.td_target_max, |w, i| w.min_q(i) - head.log_prob[i] * alpha32);
 
         // 2. Critics, eq. 6.
         let critic = w.critic_step(&bodies, &mut self.critic, b, na, clip, self.c.updates)?;

@@ -25,7 +25,7 @@ impl Td3 {
         let next: Vec<f32> = w.actor.y.iter().zip(&z).map(|(y, z)| (y.tanh() + (z * std).clamp(-limit, limit)).clamp(-1.0, 1.0)).collect();
         w.noise = z;
         w.critics_forward(&bodies, self.target_critic.host().expect("host parameters"), b.next_obs, &next, na, rows);
-        w.targets(b, self.c.cfg.gamma, self.c.cfg.td_target_max, |w, i| w.min_q(i));
+        w.targets(b, self.c.cfg.bootstrap_discount(), self.c.cfg.td_target_max, |w, i| w.min_q(i));
         let critic = w.critic_step(&bodies, &mut self.critic, b, na, clip, self.c.updates)?;
         self.c.updates += 1;
         let mut scalars = vec![(metric::CRITIC_LOSS, critic.loss), (metric::Q_MEAN, critic.q_mean), (metric::TARGET_MEAN, critic.target_mean)];
