@@ -17,7 +17,7 @@
 use mapless_proto::Transition;
 use serde::{Deserialize, Serialize};
 
-pub use mapless_proto::{MAX_N_STEP, META_N_STEP};
+pub use mapless_proto::{MAX_N_STEP, META_GAMMA, META_N_STEP};
 
 /// How an actor builds its rows when the learner bootstraps n steps ahead.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
@@ -42,14 +42,24 @@ impl NStepReturns {
     }
 }
 
-/// Whether published weights come from a learner that bootstraps over the `n` rewards this
-/// actor sums per row (their metadata's [`META_N_STEP`]; absent: 1); the error says both.
-pub fn check_snapshot(metadata: &std::collections::HashMap<String, String>, n: usize) -> Result<(), String> {
+/// Whether published weights come from a learner whose targets bootstrap over the rewards
+/// this actor sums per row: the same n (their metadata's [`META_N_STEP`]; absent: 1) and, for
+/// n > 1, the same γ ([`META_GAMMA`]); the error names both sides.
+pub fn check_snapshot(metadata: &std::collections::HashMap<String, String>, returns: Option<NStepReturns>) -> Result<(), String> {
+    let n = returns.map_or(1, |r| r.n);
     let theirs = metadata.get(META_N_STEP);
-    match theirs.map_or(Ok(1), |v| v.parse::<usize>()) {
-        Ok(m) if m == n => Ok(()),
-        _ => Err(format!("the learner's targets bootstrap over n = {} rewards, this actor's rows sum {n} (learner.n_step; the actors' n_step follows it)", theirs.map_or("1", |v| v.as_str()))),
+    if theirs.map_or(Ok(1), |v| v.parse::<usize>()) != Ok(n) {
+        return Err(format!("the learner's targets bootstrap over n = {} rewards, this actor's rows sum {n} (learner.n_step; the actors' n_step follows it)", theirs.map_or("1", |v| v.as_str())));
     }
+    if let Some(r) = returns
+        && n > 1
+    {
+        let gamma = metadata.get(META_GAMMA);
+        if gamma.and_then(|v| v.parse::<f64>().ok()) != Some(r.gamma) {
+            return Err(format!("the learner's γ is {}, this actor's rows sum with γ = {} (learner.gamma; the actors' n_step.gamma follows it)", gamma.map_or("not stated", |v| v.as_str()), r.gamma));
+        }
+    }
+    Ok(())
 }
 
 /// Where a step's row came from, carried unchanged onto the row.
@@ -232,15 +242,21 @@ mod tests {
     }
 
     #[test]
-    fn weights_must_say_the_same_n() {
+    fn weights_must_say_the_same_n_and_gamma() {
+        let three = Some(NStepReturns { n: 3, gamma: 0.995 });
         let mut meta = std::collections::HashMap::new();
-        assert!(check_snapshot(&meta, 1).is_ok());
-        assert!(check_snapshot(&meta, 3).unwrap_err().contains("n = 1"));
+        assert!(check_snapshot(&meta, None).is_ok());
+        assert!(check_snapshot(&meta, Some(NStepReturns { n: 1, gamma: 0.9 })).is_ok());
+        assert!(check_snapshot(&meta, three).unwrap_err().contains("n = 1"));
         meta.insert(META_N_STEP.to_owned(), "3".to_owned());
-        assert!(check_snapshot(&meta, 3).is_ok());
-        assert!(check_snapshot(&meta, 1).unwrap_err().contains("n = 3"));
+        assert!(check_snapshot(&meta, None).unwrap_err().contains("n = 3"));
+        assert!(check_snapshot(&meta, three).unwrap_err().contains("not stated"));
+        meta.insert(META_GAMMA.to_owned(), "0.99".to_owned());
+        assert!(check_snapshot(&meta, three).unwrap_err().contains("γ is 0.99"));
+        meta.insert(META_GAMMA.to_owned(), 0.995f64.to_string());
+        assert!(check_snapshot(&meta, three).is_ok());
         meta.insert(META_N_STEP.to_owned(), "three".to_owned());
-        assert!(check_snapshot(&meta, 3).is_err());
+        assert!(check_snapshot(&meta, three).is_err());
     }
 
     #[test]

@@ -101,7 +101,7 @@ pub struct ActorConfig {
     pub max_in_flight: usize,
     /// n-step rows (`crate::nstep`), handed over from `learner.n_step` and `learner.gamma`;
     /// none: one row per step, as the paper's one-step targets take. Published weights must
-    /// say the same n (snapshot metadata `n_step`), else they are refused.
+    /// say the same n and γ (snapshot metadata `n_step`, `gamma`), else they are refused.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub n_step: Option<NStepReturns>,
     /// The replay.
@@ -280,8 +280,12 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     let mut step_idx: Vec<u32> = vec![0; n];
     let mut episode_ids: Vec<u64> = vec![0; n];
     let mut out = VecStep::default();
-    let mut builder = TransitionBatchBuilder::with_capacity(d, 2, cfg.batch_rows + n);
+    // A batch goes out at `batch_rows` or more: the step that fills it adds up to one row per
+    // vehicle, or n with n-step rows (a collision stores the episode's last n); `mapless
+    // train` sizes the replay's row limit (`max_batch_rows`) to match.
     let mut adder = NStepAdder::new(cfg.n_step, n, d, 2);
+    let batch_capacity = cfg.batch_rows + n * adder.n();
+    let mut builder = TransitionBatchBuilder::with_capacity(d, 2, batch_capacity);
     let mut sequence = 0u64;
     let mut last_log = Instant::now();
     let (mut ep_window, mut ret_window) = (0u64, 0.0f64);
@@ -291,8 +295,8 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         if weights_rx.has_changed().unwrap_or(false) {
             let snap = weights_rx.borrow_and_update().clone();
             if let Some(s) = snap {
-                // Weights whose targets bootstrap over another n than these rows sum: refused.
-                let checked = Policy::from_snapshot(&s).map(|p| (p, crate::nstep::check_snapshot(&s.metadata, adder.n())));
+                // Weights whose targets bootstrap over other sums than these rows carry: refused.
+                let checked = Policy::from_snapshot(&s).map(|p| (p, crate::nstep::check_snapshot(&s.metadata, cfg.n_step)));
                 match checked {
                     Ok((_, Err(reason))) => {
                         report.bad_snapshots += 1;
@@ -391,7 +395,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         }
         if builder.len() >= cfg.batch_rows {
             sequence += 1;
-            let full = std::mem::replace(&mut builder, TransitionBatchBuilder::with_capacity(d, 2, cfg.batch_rows + n));
+            let full = std::mem::replace(&mut builder, TransitionBatchBuilder::with_capacity(d, 2, batch_capacity));
             if sink.send(full.finish(actor_id, sequence), &stop).is_err() {
                 break;
             }

@@ -89,6 +89,10 @@ pub const MAX_ACTOR_ID_BYTES: usize = 128;
 /// 1): actors that sum another number of rewards per row refuse those weights.
 pub const META_N_STEP: &str = "n_step";
 
+/// `WeightsSnapshot.metadata` key of the learner's γ, published with [`META_N_STEP`] when n > 1:
+/// actors whose rows sum with another γ refuse those weights.
+pub const META_GAMMA: &str = "gamma";
+
 /// Largest n of n-step rows and targets (`learner.n_step`).
 pub const MAX_N_STEP: usize = 64;
 

@@ -316,10 +316,12 @@ impl TrainConfig {
             bail!("driver.send_priorities is set, but replay.sampler is uniform, which takes no priorities: it follows replay.sampler.kind, leave it out");
         }
         self.driver.send_priorities = prioritised;
-        // An actor sends up to `batch_rows` + one row per vehicle at a time: the table takes
-        // at least that (more vehicles than the default covers raise it, and the rate
-        // limiter's check below then says if `error_buffer` must grow with it).
-        self.replay.max_batch_rows = self.replay.max_batch_rows.max(self.actors.batch_rows + self.actors.vehicles);
+        // An actor sends up to `batch_rows` + one step's rows of every vehicle at a time (one
+        // row each, or with n-step rows up to n each: a collision stores the episode's last n):
+        // the table takes at least that (more vehicles than the default covers raise it, and the
+        // rate limiter's check below then says if `error_buffer` must grow with it).
+        let step_rows = self.actors.vehicles.saturating_mul(self.learner.n_step.max(1));
+        self.replay.max_batch_rows = self.replay.max_batch_rows.max(self.actors.batch_rows.saturating_add(step_rows));
         self.replay.validate()?;
         self.learner.validate()?;
         if self.actors.count == 0 || self.actors.vehicles == 0 || self.actors.batch_rows == 0 {
@@ -935,6 +937,9 @@ mod tests {
         // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
         let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=200"])).unwrap();
         assert_eq!(cfg.replay.max_batch_rows, 64 + 200);
+        // With n-step rows a collision sends up to n rows of one vehicle in one step.
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["actors.vehicles=100", "learner.n_step=3"])).unwrap();
+        assert_eq!(cfg.replay.max_batch_rows, 64 + 3 * 100);
         // ... and with the paper's ratio too, the limiter's slack must then grow: a clear error.
         let err = load_config(&train_args("env1-sac", &["actors.vehicles=200", "replay.rate_limiter.samples_per_insert=128"])).unwrap_err();
         assert!(format!("{err:#}").contains("error_buffer"), "{err:#}");

@@ -239,8 +239,10 @@ impl Agent {
         m.insert("hidden_width".into(), c.cfg.hidden_width.to_string());
         m.insert("version".into(), c.updates.to_string());
         if c.cfg.n_step > 1 {
-            // The actors' rows must sum as many rewards as the targets bootstrap over.
+            // The actors' rows must sum as many rewards, with the same γ, as the targets
+            // bootstrap over.
             m.insert(mapless_proto::META_N_STEP.into(), c.cfg.n_step.to_string());
+            m.insert(mapless_proto::META_GAMMA.into(), c.cfg.gamma.to_string());
         }
         if let Self::Sac(_) = self {
             m.insert("sac.log_std_min".into(), c.cfg.sac.log_std_min.to_string());
