@@ -364,7 +364,6 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
                 }
             })?;
         }
-        report.n_step_dropped = adder.dropped();
         report.vehicle_steps += n as u64;
         for (i, s) in out.finished.drain(..) {
             noise.reset(i);
@@ -430,6 +429,7 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
     }
     report.unacked_at_exit = !sink.flush(Instant::now() + Duration::from_secs(10));
     report.sink = sink.stats().clone();
+    report.n_step_dropped = adder.dropped();
     drop(stats_tx);
     let _ = stop_tx.send(true);
     // Give the stats reporter a moment to hand over the last records.
