@@ -298,6 +298,14 @@ pub struct ObservationConfig {
     /// lap over its own track from new ground, and `explore-sac`'s policies end most env3
     /// episodes lapping one room's island; the value is what wheel odometry knows, no map].
     pub staleness_steps: u32,
+    /// L > 0 appends two values, tanh(d/L)·(cos β, sin β), where the episode's start lies d
+    /// metres from the car at bearing β from its heading (0 ahead, positive to the left); 0
+    /// leaves them out [ours, beyond the paper (issue 18): 0 in every preset. The EQS pays a
+    /// cell by its ring around the start (§IV-B), and `env.reward.novelty_eqs` pays the same,
+    /// but without this a memoryless policy cannot tell how far from the start it is: a lap of
+    /// the room it started in and a tour of the building look alike. It is what wheel odometry
+    /// and a heading sensor know, no map; L sets the distance at which the value is tanh(1) ≈ 0.76].
+    pub start_offset_m: f64,
 }
 
 /// Everything one environment needs besides its map.
@@ -314,9 +322,10 @@ pub struct EnvConfig {
 
 impl EnvConfig {
     /// Length of the observation vector: [ranges_t, ranges_{t−1}, v_{t−1}, ω_{t−1}, R_{t−1}],
-    /// then the staleness when `observation.staleness_steps` > 0.
+    /// then the staleness when `observation.staleness_steps` > 0, then the start's offset (two
+    /// values) when `observation.start_offset_m` > 0.
     pub fn obs_dim(&self) -> usize {
-        2 * self.sensor.beams + 3 + usize::from(self.observation.staleness_steps > 0)
+        2 * self.sensor.beams + 3 + usize::from(self.observation.staleness_steps > 0) + 2 * usize::from(self.observation.start_offset_m > 0.0)
     }
 
     /// The observation the car would read in the mirror image of its world, at the mirror
@@ -324,8 +333,8 @@ impl EnvConfig {
     /// its [`SensorConfig::mirrored_beam`], ω_{t−1} changes sign, v_{t−1} and R_{t−1} stay (eq. (1)
     /// and (2) depend on ω only through ω², and the mirror image of a map is a map), and so does
     /// the staleness (exactly where the EQS grid is its own mirror image, as in
-    /// sim/tests/mirror.rs; elsewhere a cell edge may fall a step earlier or later). `obs` and
-    /// `out` are `obs_dim` long.
+    /// sim/tests/mirror.rs; elsewhere a cell edge may fall a step earlier or later); the start's
+    /// bearing changes sign (its sine, the last value). `obs` and `out` are `obs_dim` long.
     pub fn mirror_obs(&self, obs: &[f32], out: &mut [f32]) {
         let n = self.sensor.beams;
         debug_assert!(obs.len() == self.obs_dim() && out.len() == obs.len());
@@ -336,6 +345,10 @@ impl EnvConfig {
         }
         out[2 * n..].copy_from_slice(&obs[2 * n..]);
         out[2 * n + 1] = -obs[2 * n + 1];
+        if self.observation.start_offset_m > 0.0 {
+            let last = obs.len() - 1;
+            out[last] = -obs[last];
+        }
     }
 
     /// The action (a_speed, a_turn) mirrored: the turn changes sign.
@@ -347,7 +360,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 20] = [
+        let checks: [(bool, &str); 21] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -368,6 +381,7 @@ impl EnvConfig {
             (self.reward.collision.is_finite() && self.reward.collision <= 0.0, "reward.collision must be a finite number ≤ 0"),
             (self.reward.novelty.is_finite() && self.reward.novelty >= 0.0, "reward.novelty must be a finite number ≥ 0"),
             (self.reward.novelty_eqs.is_finite() && self.reward.novelty_eqs >= 0.0, "reward.novelty_eqs must be a finite number ≥ 0"),
+            (self.observation.start_offset_m.is_finite() && self.observation.start_offset_m >= 0.0, "observation.start_offset_m must be a finite number ≥ 0 (metres; 0 leaves the start's offset out)"),
         ];
         let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());
         if !all_finite {

@@ -75,6 +75,9 @@ fn a_mirrored_transition_is_the_transition_in_the_mirrored_world() {
     // With the staleness appended: the mirrored drive enters the mirrored cells at the same steps.
     cfg.observation.staleness_steps = 30;
     check(cfg.clone());
+    // And the start's offset: its bearing changes sign, its distance does not.
+    cfg.observation.start_offset_m = 10.0;
+    check(cfg.clone());
     cfg.sensor.fov_rad = std::f64::consts::TAU;
     cfg.sensor.beams = 12;
     check(cfg);

@@ -241,6 +241,53 @@ fn the_staleness_counts_steps_since_the_last_new_cell_and_changes_nothing_else()
 }
 
 #[test]
+fn the_start_offset_points_at_the_start_in_the_cars_frame_and_changes_nothing_else() {
+    // Straight ahead for 40 steps, then a full-lock left turn: the start falls behind, then
+    // off to the side, at hand-worked bearings from the pose.
+    let drive = |l: f64| {
+        let mut cfg = noiseless();
+        cfg.observation.start_offset_m = l;
+        let w = world("box", cfg);
+        let mut env = Env::new(Arc::clone(&w), 3);
+        let mut obs = vec![0.0; w.obs_dim()];
+        env.reset_to(Pose { x_m: -3.0, y_m: -2.0, heading_rad: 0.0 }, &mut obs);
+        let mut seen = vec![(obs.clone(), env.pose(), 0.0f32)];
+        for t in 0..80 {
+            let o = env.step([1.0, if t < 40 { 0.0 } else { 1.0 }], &mut obs).unwrap();
+            assert!(!o.done(), "step {t}: the box has room for the drive");
+            seen.push((obs.clone(), env.pose(), o.reward));
+        }
+        seen
+    };
+    let (without, with) = (drive(0.0), drive(8.0));
+    assert_eq!((without[0].0.len(), with[0].0.len()), (17, 19), "two values appended");
+    for (t, ((a, pa, ra), (b, pb, rb))) in without.iter().zip(&with).enumerate() {
+        assert_eq!((&b[..17], pb, rb), (&a[..], pa, ra), "step {t}: the drive, the rest of the observation and the reward are as without it");
+        let (dx, dy) = (-3.0 - pb.x_m, -2.0 - pb.y_m);
+        let d = dx.hypot(dy);
+        let bearing = dy.atan2(dx) - pb.heading_rad;
+        let want = if d > 0.0 { [(d / 8.0).tanh() * bearing.cos(), (d / 8.0).tanh() * bearing.sin()] } else { [0.0, 0.0] };
+        assert!((b[17] as f64 - want[0]).abs() < 1e-5 && (b[18] as f64 - want[1]).abs() < 1e-5, "step {t}: {:?} is not {want:?}", &b[17..]);
+    }
+    // At the start it is 0; straight ahead the start lies straight behind (cos β = −1, sin β = 0).
+    assert_eq!(&with[0].0[17..], &[0.0, 0.0]);
+    let ahead = &with[40];
+    assert!(ahead.0[17] < -0.2 && ahead.0[18].abs() < 1e-6, "{:?}", &ahead.0[17..]);
+    // Turning left brings what lay behind to the left (sin β > 0).
+    assert!(with[41..].iter().all(|(o, ..)| o[18] > 0.0) && with[80].0[18] > 0.1, "the start is not on the car's left: {:?}", &with[80].0[17..]);
+    // Its mirror image: the bearing changes sign, the distance does not.
+    let mut cfg = noiseless();
+    cfg.observation.start_offset_m = 8.0;
+    let mut mirrored = vec![0.0; 19];
+    cfg.mirror_obs(&with[80].0, &mut mirrored);
+    assert_eq!((mirrored[17], mirrored[18]), (with[80].0[17], -with[80].0[18]));
+    for bad in [-1.0, f64::NAN, f64::INFINITY] {
+        cfg.observation.start_offset_m = bad;
+        assert!(cfg.validate().unwrap_err().to_string().contains("observation.start_offset_m"), "{bad}");
+    }
+}
+
+#[test]
 fn reaching_max_steps_is_truncated_not_terminal() {
     let mut cfg = noiseless();
     cfg.episode.max_steps = 25;
