@@ -8,7 +8,9 @@
 //!
 //! ranges normalised to [−1, 1] as 2r/r_max − 1; v (m/s) and ω (rad/s) are the last commanded
 //! action and R the last reward, in physical units. At a reset both scans are the first scan
-//! and the last action and reward are 0.
+//! and the last action and reward are 0. Beyond the paper, and only when asked for
+//! ([`crate::ObservationConfig`]), the staleness (one value) and then the start's offset (two)
+//! follow.
 //!
 //! An episode ends either by **collision** (`terminal`: the value of what follows is 0, no
 //! bootstrapping) or by reaching `max_steps` (`truncated`: the task goes on, bootstrapping

@@ -242,7 +242,7 @@ fn the_staleness_counts_steps_since_the_last_new_cell_and_changes_nothing_else()
 
 #[test]
 fn the_start_offset_points_at_the_start_in_the_cars_frame_and_changes_nothing_else() {
-    // Straight ahead for 40 steps, then a full-lock left turn: the start falls behind, then
+    // Straight ahead for 40 steps, then a hard left turn (a₂ = 1): the start falls behind, then
     // off to the side, at hand-worked bearings from the pose.
     let drive = |l: f64| {
         let mut cfg = noiseless();
