@@ -171,8 +171,6 @@ pub struct Env {
     prev_reward: f32,
     /// Steps since the pose last entered a cell the episode had not visited.
     stale_steps: u32,
-    /// Where the episode started (x, y in metres).
-    start_xy: [f64; 2],
     steps: u32,
     return_: f64,
     episode_id: u64,
@@ -205,7 +203,6 @@ impl Env {
             prev_omega: 0.0,
             prev_reward: 0.0,
             stale_steps: 0,
-            start_xy: [0.0, 0.0],
             steps: 0,
             return_: 0.0,
             episode_id: 0,
@@ -287,7 +284,6 @@ impl Env {
         self.prev_omega = 0.0;
         self.prev_reward = 0.0;
         self.stale_steps = 0;
-        self.start_xy = [pose.x_m, pose.y_m];
         let w = Arc::clone(&self.world);
         self.sensor.scan(&w.sense, &pose, &mut self.rng, &mut self.ranges);
         self.prev_ranges.copy_from_slice(&self.ranges);
@@ -380,7 +376,9 @@ impl Env {
         }
         let l = self.world.cfg.observation.start_offset_m;
         if l > 0.0 {
-            let (dx, dy) = (self.start_xy[0] - self.pose.x_m, self.start_xy[1] - self.pose.y_m);
+            // The start is the EQS rings' centre, which the tracker keeps.
+            let (sx, sy) = self.tracker.start();
+            let (dx, dy) = (sx - self.pose.x_m, sy - self.pose.y_m);
             let d = dx.hypot(dy);
             let scale = if d > 0.0 { (d / l).tanh() / d } else { 0.0 };
             // The start in the car's frame: x ahead, y to the left.

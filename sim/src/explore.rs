@@ -64,6 +64,11 @@ impl ExplorationTracker {
         }
     }
 
+    /// Where the episode started (x, y in metres): the centre of the EQS rings.
+    pub fn start(&self) -> (f64, f64) {
+        self.start
+    }
+
     /// Starts a new episode at (x, y).
     pub fn reset(&mut self, x: f64, y: f64) {
         self.visited.fill(0);
