@@ -176,6 +176,14 @@ pub struct RewardConfig {
     /// being entered, so a cell in ring n pays n times one beside the start, and a car that
     /// leaves the room it started in is paid for it; `novelty` pays every cell alike].
     pub novelty_eqs: f64,
+    /// The most ΔEQS one new cell is paid for by `novelty_eqs`, > 0, or 0 for no cap [ours,
+    /// beyond the paper (issue 18): 0 everywhere unless a run sets it. With the linear inner
+    /// sum a cell pays its ring, so the bonus grows without end with the distance from the
+    /// start and a car that knows where the start is (`observation.start_offset_m`) is paid
+    /// most for the farthest place, in a cave a pocket's end; capped at c, every cell beyond
+    /// ring c pays as one in ring c (c = 4: 7.5–10 m at 2.5 m rings), so leaving the start's
+    /// neighbourhood pays and going farther does not. The EQS itself is not changed].
+    pub novelty_eqs_cap: f64,
 }
 
 impl Default for RewardConfig {
@@ -187,7 +195,7 @@ impl Default for RewardConfig {
 impl RewardConfig {
     /// Paper eq. (1): exploration.
     pub fn exploration() -> Self {
-        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0, novelty_eqs: 0.0 }
+        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0, novelty_eqs: 0.0, novelty_eqs_cap: 0.0 }
     }
     /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
     pub fn search_and_rescue() -> Self {
@@ -200,6 +208,13 @@ impl RewardConfig {
             "search_and_rescue" | "sar" | "eq2" => Ok(Self::search_and_rescue()),
             _ => Err(SimError::InvalidConfig(format!("unknown reward preset `{name}` (exploration, search_and_rescue)"))),
         }
+    }
+    /// What `novelty_eqs` multiplies on a step that adds `eqs_gained` to the EQS: the gain,
+    /// capped at `novelty_eqs_cap` when that is > 0.
+    #[inline]
+    pub fn novelty_eqs_paid(&self, eqs_gained: u64) -> f64 {
+        let gained = eqs_gained as f64;
+        if self.novelty_eqs_cap > 0.0 { gained.min(self.novelty_eqs_cap) } else { gained }
     }
     /// Reward for minimum range `r_m` and commanded (v, ω).
     #[inline]
@@ -360,7 +375,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 21] = [
+        let checks: [(bool, &str); 22] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -381,6 +396,7 @@ impl EnvConfig {
             (self.reward.collision.is_finite() && self.reward.collision <= 0.0, "reward.collision must be a finite number ≤ 0"),
             (self.reward.novelty.is_finite() && self.reward.novelty >= 0.0, "reward.novelty must be a finite number ≥ 0"),
             (self.reward.novelty_eqs.is_finite() && self.reward.novelty_eqs >= 0.0, "reward.novelty_eqs must be a finite number ≥ 0"),
+            (self.reward.novelty_eqs_cap.is_finite() && self.reward.novelty_eqs_cap >= 0.0, "reward.novelty_eqs_cap must be a finite number ≥ 0 (0: no cap)"),
             (self.observation.start_offset_m.is_finite() && self.observation.start_offset_m >= 0.0, "observation.start_offset_m must be a finite number ≥ 0 (metres; 0 leaves the start's offset out)"),
         ];
         let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());

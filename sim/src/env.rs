@@ -327,7 +327,7 @@ impl Env {
             reward += rc.collision;
         }
         if new_cell {
-            reward += rc.novelty + rc.novelty_eqs * eqs_gained as f64;
+            reward += rc.novelty + rc.novelty_eqs * rc.novelty_eqs_paid(eqs_gained);
         }
         if let Some(t) = &mut self.trajectory {
             t.push([self.pose.x_m, self.pose.y_m]);

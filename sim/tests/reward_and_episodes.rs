@@ -156,10 +156,11 @@ struct Drive {
 }
 
 /// One drive in the empty box (5 m straight, then a full-lock circle back over its own track)
-/// with the given novelty bonuses (per cell, per EQS point) and staleness horizon.
-fn drive_straight_then_lap(novelty: (f64, f64), staleness_steps: u32) -> Drive {
+/// with the given novelty bonuses (per cell, per EQS point, the cap on the points one cell is
+/// paid for) and staleness horizon.
+fn drive_straight_then_lap(novelty: (f64, f64, f64), staleness_steps: u32) -> Drive {
     let mut cfg = noiseless();
-    (cfg.reward.novelty, cfg.reward.novelty_eqs) = novelty;
+    (cfg.reward.novelty, cfg.reward.novelty_eqs, cfg.reward.novelty_eqs_cap) = novelty;
     cfg.observation.staleness_steps = staleness_steps;
     let w = world("box", cfg);
     let mut env = Env::new(Arc::clone(&w), 5);
@@ -183,10 +184,12 @@ fn drive_straight_then_lap(novelty: (f64, f64), staleness_steps: u32) -> Drive {
 fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
     // The same drive with eq. (1) and with eq. (1) plus `novelty` (per cell) and `novelty_eqs`
     // (per point of EQS).
-    let Drive { rewards: plain, gained, cells, eqs, .. } = drive_straight_then_lap((0.0, 0.0), 0);
-    let Drive { rewards: paid, gained: gained_too, observed, .. } = drive_straight_then_lap((10.0, 0.0), 0);
-    let Drive { rewards: paid_eqs, gained: gained_also, observed: observed_eqs, .. } = drive_straight_then_lap((0.0, 2.0), 0);
-    assert!(gained == gained_too && gained == gained_also, "the terms do not change the drive");
+    let Drive { rewards: plain, gained, cells, eqs, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 0);
+    let Drive { rewards: paid, gained: gained_too, observed, .. } = drive_straight_then_lap((10.0, 0.0, 0.0), 0);
+    let Drive { rewards: paid_eqs, gained: gained_also, observed: observed_eqs, .. } = drive_straight_then_lap((0.0, 2.0, 0.0), 0);
+    // Capped at 1.5 points a cell: ring 1 pays 1, every farther ring 1.5.
+    let Drive { rewards: capped, gained: gained_capped, .. } = drive_straight_then_lap((0.0, 2.0, 1.5), 0);
+    assert!(gained == gained_too && gained == gained_also && gained == gained_capped, "the terms do not change the drive");
     // 5 m straight from x = −6 crosses cell edges at −4.5 and −2.5; the circle (0.76 m radius)
     // enters a few more and then only cells it has seen.
     let n_new = gained.iter().filter(|&&g| g > 0).count();
@@ -198,6 +201,8 @@ fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
         assert!((q - want).abs() < 1e-4, "step {k}: {q} against {want}");
         let want_eqs = p + 2.0 * *g as f32;
         assert!((q_eqs - want_eqs).abs() < 1e-4, "step {k}: {q_eqs} against {want_eqs}");
+        let want_capped = p + 2.0 * (*g as f32).min(1.5);
+        assert!((capped[k] - want_capped).abs() < 1e-4, "step {k}: {} against {want_capped} (capped)", capped[k]);
         // The observation after step k carries its reward as R_{t−1}, the bonus included.
         assert_eq!((observed[k + 1][16], observed_eqs[k + 1][16]), (*q, *q_eqs), "step {k}");
     }
@@ -205,10 +210,15 @@ fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
     let bonus: f64 = paid_eqs.iter().zip(&plain).map(|(q, p)| f64::from(q - p)).sum();
     assert!((bonus - 2.0 * (eqs - 1) as f64).abs() < 1e-3, "{bonus} against EQS {eqs}");
     // A price for exploring, or no number, is refused.
-    for field in ["novelty", "novelty_eqs"] {
+    for field in ["novelty", "novelty_eqs", "novelty_eqs_cap"] {
         for bad in [-1.0, f64::INFINITY] {
             let mut cfg = noiseless();
-            *(if field == "novelty" { &mut cfg.reward.novelty } else { &mut cfg.reward.novelty_eqs }) = bad;
+            let r = &mut cfg.reward;
+            *(match field {
+                "novelty" => &mut r.novelty,
+                "novelty_eqs" => &mut r.novelty_eqs,
+                _ => &mut r.novelty_eqs_cap,
+            }) = bad;
             assert!(cfg.validate().unwrap_err().to_string().contains(&format!("reward.{field} ")), "{field} = {bad}");
         }
     }
@@ -216,8 +226,8 @@ fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
 
 #[test]
 fn the_staleness_counts_steps_since_the_last_new_cell_and_changes_nothing_else() {
-    let Drive { rewards: rewards_without, gained, observed: without, .. } = drive_straight_then_lap((0.0, 0.0), 0);
-    let Drive { rewards: rewards_with, gained: gained_too, observed: with, .. } = drive_straight_then_lap((0.0, 0.0), 50);
+    let Drive { rewards: rewards_without, gained, observed: without, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 0);
+    let Drive { rewards: rewards_with, gained: gained_too, observed: with, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 50);
     assert_eq!((&gained, &rewards_without), (&gained_too, &rewards_with), "the value only observes");
     assert_eq!((without[0].len(), with[0].len()), (17, 18), "one value appended");
     let mut k_since = 0u32;
