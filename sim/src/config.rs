@@ -145,8 +145,8 @@ pub struct RewardBand {
 }
 
 /// R = w_r r² + w_v v² − w_ω ω² + Σ bands (+ `collision` on a step that ends in one, +
-/// `novelty` + `novelty_eqs`·ΔEQS on a step that enters a cell the episode has not visited,
-/// ΔEQS what the cell adds to the EQS), r the smallest range
+/// `novelty` + `novelty_eqs`·min(ΔEQS, `novelty_eqs_cap`) (no cap at 0) on a step that enters a
+/// cell the episode has not visited, ΔEQS what the cell adds to the EQS), r the smallest range
 /// reading (metres), v and ω the commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]

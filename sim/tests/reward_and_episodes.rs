@@ -183,7 +183,7 @@ fn drive_straight_then_lap(novelty: (f64, f64, f64), staleness_steps: u32) -> Dr
 #[test]
 fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
     // The same drive with eq. (1) and with eq. (1) plus `novelty` (per cell) and `novelty_eqs`
-    // (per point of EQS).
+    // (per point of EQS), uncapped and capped (`novelty_eqs_cap`).
     let Drive { rewards: plain, gained, cells, eqs, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 0);
     let Drive { rewards: paid, gained: gained_too, observed, .. } = drive_straight_then_lap((10.0, 0.0, 0.0), 0);
     let Drive { rewards: paid_eqs, gained: gained_also, observed: observed_eqs, .. } = drive_straight_then_lap((0.0, 2.0, 0.0), 0);
