@@ -145,9 +145,10 @@ pub struct RewardBand {
 }
 
 /// R = w_r r² + w_v v² − w_ω ω² + Σ bands (+ `collision` on a step that ends in one, +
-/// `novelty` + `novelty_eqs`·min(ΔEQS, `novelty_eqs_cap`) (no cap at 0) on a step that enters a
-/// cell the episode has not visited, ΔEQS what the cell adds to the EQS), r the smallest range
-/// reading (metres), v and ω the commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
+/// `novelty` + `novelty_eqs`·[min(ΔEQS, c) + s·max(ΔEQS − c, 0)] on a step that enters a cell the
+/// episode has not visited, ΔEQS what the cell adds to the EQS, c = `novelty_eqs_cap`, s =
+/// `novelty_eqs_past_cap`; ΔEQS itself when c = 0, no cap), r the smallest range reading (metres),
+/// v and ω the commanded action (m/s, rad/s). Eq. (1) and eq. (2) are presets.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct RewardConfig {
@@ -184,6 +185,13 @@ pub struct RewardConfig {
     /// ring c pays as one in ring c (c = 4: 7.5–10 m at 2.5 m rings), so leaving the start's
     /// neighbourhood pays and going farther does not. The EQS itself is not changed].
     pub novelty_eqs_cap: f64,
+    /// The share s ∈ [0, 1] of what a new cell adds to the EQS past `novelty_eqs_cap` that is
+    /// still paid: the cell pays min(ΔEQS, c) + s·(ΔEQS − c)⁺; 0 is the flat cap, 1 no cap; only
+    /// with a cap [ours, beyond the paper (issue 18): 0 everywhere unless a run sets it. A flat
+    /// cap pays every cell past ring c alike, so a memoryless car no longer gains by going on
+    /// to the next room and laps the first one (env3, c = 4); s > 0 keeps a slope outward,
+    /// shallower than the uncapped one that drives cars into a cave's far pockets].
+    pub novelty_eqs_past_cap: f64,
 }
 
 impl Default for RewardConfig {
@@ -195,7 +203,7 @@ impl Default for RewardConfig {
 impl RewardConfig {
     /// Paper eq. (1): exploration.
     pub fn exploration() -> Self {
-        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0, novelty_eqs: 0.0, novelty_eqs_cap: 0.0 }
+        RewardConfig { range_weight: 0.0075, speed_weight: 1.5, turn_penalty: 0.6, bands: Vec::new(), collision: 0.0, novelty: 0.0, novelty_eqs: 0.0, novelty_eqs_cap: 0.0, novelty_eqs_past_cap: 0.0 }
     }
     /// Paper eq. (2): search and rescue — eq. (1) plus +2.0 for 2.0 < r < 2.5 m and −50 for r < 1.0 m.
     pub fn search_and_rescue() -> Self {
@@ -210,11 +218,12 @@ impl RewardConfig {
         }
     }
     /// What `novelty_eqs` multiplies on a step that adds `eqs_gained` to the EQS: the gain,
-    /// capped at `novelty_eqs_cap` when that is > 0.
+    /// capped at `novelty_eqs_cap` when that is > 0, plus `novelty_eqs_past_cap` times what lies
+    /// past the cap.
     #[inline]
     pub fn novelty_eqs_paid(&self, eqs_gained: u64) -> f64 {
-        let gained = eqs_gained as f64;
-        if self.novelty_eqs_cap > 0.0 { gained.min(self.novelty_eqs_cap) } else { gained }
+        let (gained, cap) = (eqs_gained as f64, self.novelty_eqs_cap);
+        if cap > 0.0 && gained > cap { cap + self.novelty_eqs_past_cap * (gained - cap) } else { gained }
     }
     /// Reward for minimum range `r_m` and commanded (v, ω).
     #[inline]
@@ -375,7 +384,7 @@ impl EnvConfig {
     pub fn validate(&self) -> Result<()> {
         let v = &self.vehicle;
         let s = &self.sensor;
-        let checks: [(bool, &str); 22] = [
+        let checks: [(bool, &str); 24] = [
             (v.wheelbase_m > 0.0, "vehicle.wheelbase_m must be > 0"),
             (v.lr_m > 0.0 && v.lr_m <= v.wheelbase_m, "vehicle.lr_m must be in (0, wheelbase_m]"),
             (v.length_m > 0.0 && v.width_m > 0.0, "vehicle footprint must be > 0"),
@@ -397,6 +406,8 @@ impl EnvConfig {
             (self.reward.novelty.is_finite() && self.reward.novelty >= 0.0, "reward.novelty must be a finite number ≥ 0"),
             (self.reward.novelty_eqs.is_finite() && self.reward.novelty_eqs >= 0.0, "reward.novelty_eqs must be a finite number ≥ 0"),
             (self.reward.novelty_eqs_cap.is_finite() && self.reward.novelty_eqs_cap >= 0.0, "reward.novelty_eqs_cap must be a finite number ≥ 0 (0: no cap)"),
+            ((0.0..=1.0).contains(&self.reward.novelty_eqs_past_cap), "reward.novelty_eqs_past_cap must be in [0, 1]"),
+            (self.reward.novelty_eqs_past_cap == 0.0 || self.reward.novelty_eqs_cap > 0.0, "reward.novelty_eqs_past_cap needs reward.novelty_eqs_cap > 0 (without a cap nothing lies past it)"),
             (self.observation.start_offset_m.is_finite() && self.observation.start_offset_m >= 0.0, "observation.start_offset_m must be a finite number ≥ 0 (metres; 0 leaves the start's offset out)"),
         ];
         let all_finite = [v.wheelbase_m, v.lr_m, v.length_m, v.width_m, v.max_steer_rad, v.v_max_mps, v.omega_max_radps, v.dt_s, s.fov_rad, s.max_range_m, s.noise_std_m].iter().all(|x| x.is_finite());

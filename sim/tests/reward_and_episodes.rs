@@ -157,10 +157,10 @@ struct Drive {
 
 /// One drive in the empty box (5 m straight, then a full-lock circle back over its own track)
 /// with the given novelty bonuses (per cell, per EQS point, the cap on the points one cell is
-/// paid for) and staleness horizon.
-fn drive_straight_then_lap(novelty: (f64, f64, f64), staleness_steps: u32) -> Drive {
+/// paid for, the share paid past the cap) and staleness horizon.
+fn drive_straight_then_lap(novelty: (f64, f64, f64, f64), staleness_steps: u32) -> Drive {
     let mut cfg = noiseless();
-    (cfg.reward.novelty, cfg.reward.novelty_eqs, cfg.reward.novelty_eqs_cap) = novelty;
+    (cfg.reward.novelty, cfg.reward.novelty_eqs, cfg.reward.novelty_eqs_cap, cfg.reward.novelty_eqs_past_cap) = novelty;
     cfg.observation.staleness_steps = staleness_steps;
     let w = world("box", cfg);
     let mut env = Env::new(Arc::clone(&w), 5);
@@ -183,13 +183,16 @@ fn drive_straight_then_lap(novelty: (f64, f64, f64), staleness_steps: u32) -> Dr
 #[test]
 fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
     // The same drive with eq. (1) and with eq. (1) plus `novelty` (per cell) and `novelty_eqs`
-    // (per point of EQS), uncapped and capped (`novelty_eqs_cap`).
-    let Drive { rewards: plain, gained, cells, eqs, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 0);
-    let Drive { rewards: paid, gained: gained_too, observed, .. } = drive_straight_then_lap((10.0, 0.0, 0.0), 0);
-    let Drive { rewards: paid_eqs, gained: gained_also, observed: observed_eqs, .. } = drive_straight_then_lap((0.0, 2.0, 0.0), 0);
+    // (per point of EQS), uncapped, capped (`novelty_eqs_cap`) and capped with a share paid
+    // past the cap (`novelty_eqs_past_cap`).
+    let Drive { rewards: plain, gained, cells, eqs, .. } = drive_straight_then_lap((0.0, 0.0, 0.0, 0.0), 0);
+    let Drive { rewards: paid, gained: gained_too, observed, .. } = drive_straight_then_lap((10.0, 0.0, 0.0, 0.0), 0);
+    let Drive { rewards: paid_eqs, gained: gained_also, observed: observed_eqs, .. } = drive_straight_then_lap((0.0, 2.0, 0.0, 0.0), 0);
     // Capped at 1.5 points a cell: ring 1 pays 1, every farther ring 1.5.
-    let Drive { rewards: capped, gained: gained_capped, .. } = drive_straight_then_lap((0.0, 2.0, 1.5), 0);
-    assert!(gained == gained_too && gained == gained_also && gained == gained_capped, "the terms do not change the drive");
+    let Drive { rewards: capped, gained: gained_capped, .. } = drive_straight_then_lap((0.0, 2.0, 1.5, 0.0), 0);
+    // ... and with half of what lies past 1.5 points: ring 2 pays 1.75.
+    let Drive { rewards: sloped, gained: gained_sloped, .. } = drive_straight_then_lap((0.0, 2.0, 1.5, 0.5), 0);
+    assert!(gained == gained_too && gained == gained_also && gained == gained_capped && gained == gained_sloped, "the terms do not change the drive");
     // 5 m straight from x = −6 crosses cell edges at −4.5 and −2.5; the circle (0.76 m radius)
     // enters a few more and then only cells it has seen.
     let n_new = gained.iter().filter(|&&g| g > 0).count();
@@ -203,6 +206,8 @@ fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
         assert!((q_eqs - want_eqs).abs() < 1e-4, "step {k}: {q_eqs} against {want_eqs}");
         let want_capped = p + 2.0 * (*g as f32).min(1.5);
         assert!((capped[k] - want_capped).abs() < 1e-4, "step {k}: {} against {want_capped} (capped)", capped[k]);
+        let want_sloped = p + 2.0 * ((*g as f32).min(1.5) + 0.5 * (*g as f32 - 1.5).max(0.0));
+        assert!((sloped[k] - want_sloped).abs() < 1e-4, "step {k}: {} against {want_sloped} (sloped)", sloped[k]);
         // The observation after step k carries its reward as R_{t−1}, the bonus included.
         assert_eq!((observed[k + 1][16], observed_eqs[k + 1][16]), (*q, *q_eqs), "step {k}");
     }
@@ -222,12 +227,21 @@ fn the_novelty_term_is_paid_on_each_step_that_enters_a_new_cell_only() {
             assert!(cfg.validate().unwrap_err().to_string().contains(&format!("reward.{field} ")), "{field} = {bad}");
         }
     }
+    // A share past the cap outside [0, 1], or without a cap to be past, is refused.
+    for (cap, share) in [(1.5, -0.1), (1.5, 1.5), (1.5, f64::NAN), (0.0, 0.5)] {
+        let mut cfg = noiseless();
+        (cfg.reward.novelty_eqs_cap, cfg.reward.novelty_eqs_past_cap) = (cap, share);
+        assert!(cfg.validate().unwrap_err().to_string().contains("reward.novelty_eqs_past_cap "), "cap {cap}, share {share}");
+    }
+    let mut cfg = noiseless();
+    (cfg.reward.novelty_eqs_cap, cfg.reward.novelty_eqs_past_cap) = (1.5, 1.0);
+    cfg.validate().unwrap();
 }
 
 #[test]
 fn the_staleness_counts_steps_since_the_last_new_cell_and_changes_nothing_else() {
-    let Drive { rewards: rewards_without, gained, observed: without, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 0);
-    let Drive { rewards: rewards_with, gained: gained_too, observed: with, .. } = drive_straight_then_lap((0.0, 0.0, 0.0), 50);
+    let Drive { rewards: rewards_without, gained, observed: without, .. } = drive_straight_then_lap((0.0, 0.0, 0.0, 0.0), 0);
+    let Drive { rewards: rewards_with, gained: gained_too, observed: with, .. } = drive_straight_then_lap((0.0, 0.0, 0.0, 0.0), 50);
     assert_eq!((&gained, &rewards_without), (&gained_too, &rewards_with), "the value only observes");
     assert_eq!((without[0].len(), with[0].len()), (17, 18), "one value appended");
     let mut k_since = 0u32;
