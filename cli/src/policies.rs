@@ -279,7 +279,7 @@ pub fn card_markdown(c: &Card) -> String {
     );
     let _ = writeln!(
         s,
-        "*Parked*: episodes that ran to the limit without a collision because the car stopped (it drove under a third of what its steps cover at full speed; docs/cluster.md, \"Safe, or parked?\").\n"
+        "*Parked*: episodes that ran to the limit without a collision because the car stopped (it drove under a third of what its steps cover at full speed; docs/experiments.md, \"Safe, or parked?\").\n"
     );
     let _ = writeln!(s, "| map | episodes × step limit | mean steps | collisions | parked | EQS | EES | distance (m) |");
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|");

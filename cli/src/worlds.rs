@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use clap::Subcommand;
 use mapless_plots::{Canvas, contact_sheet_png, default_px_per_m};
-use mapless_sim::Map;
 use mapless_sim::worlds::{DRIVABLE_CELL_M, DRIVE_CLEARANCE_M, DrivableSpace, Family, Split, generate};
+use mapless_sim::{Map, VehicleConfig};
 
 #[derive(Subcommand)]
 pub enum WorldsCmd {
@@ -73,11 +73,18 @@ pub fn run(cmd: WorldsCmd) -> Result<()> {
     }
 }
 
-/// One line on a world: size, obstacles, drivable share.
-fn summary(map: &Map) -> String {
-    let space = DrivableSpace::of(map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
+/// One line on a world: size, obstacles, drivable share, and how much of it is dead ends the
+/// default car (which cannot reverse) could drive into but not turn round in.
+fn summary(map: &Map, space: &DrivableSpace) -> String {
     let things = if map.grid.is_some() { "grid".to_string() } else { format!("{} obstacles, {} shaded", map.obstacles.len(), map.shaded.len()) };
-    format!("{:.1} m × {:.1} m, {things}, {:.0} m² drivable ({:.0} %) in one piece", map.bounds.width(), map.bounds.height(), space.area_m2(), 100.0 * space.share())
+    format!(
+        "{:.1} m × {:.1} m, {things}, {:.0} m² drivable ({:.0} %) in one piece, {:.1} % of it in dead ends too narrow to turn round in",
+        map.bounds.width(),
+        map.bounds.height(),
+        space.area_m2(),
+        100.0 * space.share(),
+        100.0 * space.dead_end_share(&VehicleConfig::default())
+    )
 }
 
 fn generate_cmd(family: &str, seed: u64, out: &Path, resolution: f64) -> Result<()> {
@@ -86,7 +93,8 @@ fn generate_cmd(family: &str, seed: u64, out: &Path, resolution: f64) -> Result<
     let png = out.join(format!("{}.png", map.name));
     let title = format!("{} — {:.1} m × {:.1} m", map.name, map.bounds.width(), map.bounds.height());
     let mut c = Canvas::map(&map, default_px_per_m(&map), &title)?;
-    c.footer(&summary(&map))?;
+    let space = DrivableSpace::of(&map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
+    c.footer(&summary(&map, &space))?;
     c.save_png(&png)?;
     println!("wrote {} (+ .pgm) and {}", yaml.display(), png.display());
     if let Some(text) = map.to_vector_yaml() {
@@ -94,7 +102,7 @@ fn generate_cmd(family: &str, seed: u64, out: &Path, resolution: f64) -> Result<
         std::fs::write(&v, text).with_context(|| format!("writing {}", v.display()))?;
         println!("wrote {} (vector form, with shaded regions)", v.display());
     }
-    println!("{}: {}", map.name, summary(&map));
+    println!("{}: {}", map.name, summary(&map, &space));
     Ok(())
 }
 
@@ -104,13 +112,19 @@ fn show(family: &str, seeds: Range<u64>, columns: usize, out: &Path) -> Result<(
         bail!("--columns must be ≥ 1");
     }
     let mut tiles = Vec::new();
+    let mut dead_sum = 0.0;
     for seed in seeds.clone() {
         let map = generate(f, seed)?;
         // Every world at the same scale, so their sizes compare.
         let mut c = Canvas::map(&map, 600.0 / 60.0, &format!("{} ({:.0} m)", map.name, map.bounds.width()))?;
-        c.footer(&format!("{:.0} % drivable", 100.0 * DrivableSpace::of(&map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M).share()))?;
+        let space = DrivableSpace::of(&map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
+        let dead = space.dead_end_share(&VehicleConfig::default());
+        c.footer(&format!("{:.0} % drivable, {:.1} % of it dead ends", 100.0 * space.share(), 100.0 * dead))?;
+        println!("{}: {}", map.name, summary(&map, &space));
+        dead_sum += dead;
         tiles.push(c);
     }
+    println!("{f}: {:.2} % of the drivable space in dead ends on average (a dead end: a passage too narrow for the car to turn round in that leads nowhere)", 100.0 * dead_sum / tiles.len() as f64);
     let title = format!("{f} worlds, seeds {}..{} — {}", seeds.start, seeds.end, f.describe());
     contact_sheet_png(&tiles, columns, 0.5, &title, out)?;
     println!("wrote {} ({} worlds)", out.display(), tiles.len());

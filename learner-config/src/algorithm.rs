@@ -83,9 +83,9 @@ pub struct LearnerConfig {
     /// Beyond the paper, 1 in every paper preset. Its reason: a collision's price reaches the
     /// states n steps before it in one update instead of n (Sutton 1988; Hessel et al. 2018,
     /// "Rainbow"; Barth-Maron et al. 2018, D4PG); `explore-sac`'s cave misses are turns begun
-    /// too late (docs/cluster.md). Off-policy, the sum follows the acting policy's own rewards,
+    /// too late (docs/experiments.md). Off-policy, the sum follows the acting policy's own rewards,
     /// uncorrected, as those agents do. Measured at 3 on `explore-sac`, two seeds: no better
-    /// than one-step targets (docs/cluster.md, "n-step targets").
+    /// than one-step targets (docs/experiments.md, "n-step targets").
     pub n_step: usize,
     /// Actor (policy) learning rate [paper Table I: 5e-5].
     pub actor_lr: f64,
@@ -122,7 +122,7 @@ pub struct LearnerConfig {
     /// without a learned gain or bias: zero mean, unit variance over the layer's units, ε
     /// 1e-5) before its ReLU. Beyond the paper, off in every paper preset [paper §II-B: plain
     /// ReLU layers]. Its reason: the critics' loss and Q grow through every `explore-sac` run
-    /// and two runs with larger scans diverged (docs/cluster.md); normalised critic features
+    /// and two runs with larger scans diverged (docs/experiments.md); normalised critic features
     /// are the standard cure for that growth (Ball et al. 2023, RLPD; Yue et al. 2023,
     /// "Understanding, predicting and better resolving Q-value divergence"). Without a gain or
     /// bias the parameters, checkpoints' layout and the published actor are unchanged; only
@@ -132,7 +132,7 @@ pub struct LearnerConfig {
     /// before the critic step; `null` clips nothing. Beyond the paper, null in the paper's presets,
     /// 335 in `explore-sac` (300 plus room for its bonus on the EQS) [inferred: null]. Its reason: no return can exceed the reward's per-step supremum over
     /// 1 − γ, yet runs of `explore-sac` with five rays per beam drove their Q means past 2,000
-    /// (docs/cluster.md). With eq. (1), the default 12 m sensor and 0.5 m/s the bound is
+    /// (docs/experiments.md). With eq. (1), the default 12 m sensor and 0.5 m/s the bound is
     /// (0.0075·12² + 1.5·0.5²)/(1 − 0.995) = 291 (`mapless maps stats` gives a world's own),
     /// plus, in expectation, α·ln 4/(1 − γ) for SAC's entropy bonus. A guard against the
     /// critics' runaway, not a cure for what starts it.
@@ -144,7 +144,7 @@ pub struct LearnerConfig {
     /// et al. 2018, "Improving stability in deep RL with weight averaging"). `null` publishes
     /// the trained actor itself. Beyond the paper, null in every preset [inferred: null]. Its
     /// reason: the policy one `explore-sac` run kept and one of its own earlier policies were
-    /// collision-free in 10 and in 23 of the same 30 held-out cave episodes (docs/cluster.md); an average
+    /// collision-free in 10 and in 23 of the same 30 held-out cave episodes (docs/experiments.md); an average
     /// over the actor's recent weights is the usual guard against shipping a bad one. Training
     /// is unchanged: the actor loss, the critics and SAC's α all use the trained actor.
     pub policy_average: Option<f64>,

@@ -172,7 +172,7 @@ pub struct RewardConfig {
     pub novelty: f64,
     /// Added, times what the step adds to the EQS, to the reward of a step that enters a new
     /// cell, ≥ 0 [ours, beyond the paper (issue 18): 0 in eq. 1 and eq. 2, 1.5 in the
-    /// `explore-sac` preset (docs/cluster.md, "A bonus on the EQS"). The metric itself
+    /// `explore-sac` preset (docs/experiments.md, "A bonus on the EQS"). The metric itself
     /// paid: over an episode the term sums to `novelty_eqs`·(EQS − 1), the start's cell not
     /// being entered, so a cell in ring n pays n times one beside the start, and a car that
     /// leaves the room it started in is paid for it; `novelty` pays every cell alike].

@@ -61,8 +61,7 @@ impl World {
     /// Can the car stand here with `clearance_m` to spare? Conservative: the centre must be at
     /// least clearance + the footprint's circumradius from every surface, whatever the heading.
     pub fn is_valid_start(&self, x: f64, y: f64, clearance_m: f64) -> bool {
-        let circumradius = self.footprint.half_length_m.hypot(self.footprint.half_width_m);
-        self.map.is_free(x, y) && self.collide.distance_to_nearest(x, y) >= clearance_m + circumradius
+        self.map.is_free(x, y) && self.collide.distance_to_nearest(x, y) >= clearance_m + self.cfg.vehicle.circumradius_m()
     }
 
     /// Does the car at `pose` face a surface within `within_m`? Rays from its centre across its
@@ -88,8 +87,7 @@ impl World {
         let hits = |p: &Pose| self.collide.footprint_collides(p.x_m, p.y_m, p.heading_rad, &self.footprint);
         // Walk in pieces no longer than the simulator's own sub-step.
         let piece_m = vc.max_substep_m.min(0.05);
-        let yaw_rate_per_m = vc.slip_rad(vc.max_steer_rad).sin() / vc.lr_m;
-        let circle_m = std::f64::consts::TAU / yaw_rate_per_m;
+        let circle_m = std::f64::consts::TAU * vc.min_turning_radius_m();
         let n_circle = (circle_m / piece_m).ceil() as usize;
         let circle_t = circle_m / n_circle as f64 / vc.v_max_mps;
         let circles = |from: Pose| {

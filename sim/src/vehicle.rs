@@ -45,6 +45,13 @@ impl VehicleConfig {
         Command { v_mps: v, omega_radps: omega, steer_rad: steer }
     }
 
+    /// Distance from the centre of mass to the footprint's corners (m; the default car's
+    /// 0.313 m): the car fits wherever the centre is this far from every surface, whatever its
+    /// heading.
+    pub fn circumradius_m(&self) -> f64 {
+        (self.length_m / 2.0).hypot(self.width_m / 2.0)
+    }
+
     /// Slip angle β for steering δ (eq. 16).
     #[inline]
     pub fn slip_rad(&self, steer_rad: f64) -> f64 {
@@ -79,6 +86,13 @@ impl VehicleConfig {
     /// Turning radius of the centre of mass at steering δ (∞ for δ = 0).
     pub fn turning_radius_m(&self, steer_rad: f64) -> f64 {
         self.lr_m / self.slip_rad(steer_rad).sin().abs()
+    }
+
+    /// The tightest circle the centre of mass drives, at the steering limit (m; the default
+    /// car's 0.774 m). The car cannot reverse, so a passage narrower than this circle and its
+    /// footprint is one it cannot turn round in.
+    pub fn min_turning_radius_m(&self) -> f64 {
+        self.turning_radius_m(self.max_steer_rad)
     }
 }
 
@@ -137,6 +151,9 @@ mod tests {
         let r_expected = 0.16 / beta.sin();
         assert!((c.turning_radius_m(delta) - r_expected).abs() < 1e-12);
         assert!((r_expected - 1.046777).abs() < 1e-5);
+        // At the 0.40 rad limit: β = atan(0.5 tan 0.4) = 0.208329, R = 0.16 / sin β = 0.773598 m.
+        assert!((c.min_turning_radius_m() - 0.773598).abs() < 1e-5, "{}", c.min_turning_radius_m());
+        assert!((c.circumradius_m() - 0.275f64.hypot(0.15)).abs() < 1e-12);
         // Integrate in many small steps; every point lies on one circle of that radius, and a
         // full revolution (2πR / v seconds) returns to the start.
         let p0 = Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 };

@@ -108,7 +108,7 @@ impl Score {
     /// rule was once that the two 95 % Wilson intervals be apart, a test at about 0.5 %, which
     /// kept a last policy with 7 collisions of 60 over a best one with none, and the best one
     /// was the safer on 150 held-out worlds no evaluation had met, 142 against 114
-    /// collision-free; docs/cluster.md, "A bonus on the EQS, and a stricter gate"]
+    /// collision-free; docs/experiments.md, "A bonus on the EQS, and a stricter gate"]
     fn clearly_safer_than(&self, other: &Score) -> bool {
         fisher_one_sided(self.collisions, self.episodes, other.collisions, other.episodes) < 0.05
     }
@@ -140,6 +140,9 @@ pub(crate) struct Evaluations {
     settings: EvalSettings,
     /// Episodes of an evaluation of the stop criterion.
     gate_episodes: u32,
+    /// Episodes each of the evaluations that choose between the best policy and the last at the
+    /// end (`stop.choose_episodes`).
+    choice_episodes: u32,
     /// The evaluation running now, if any, and when the last one ended.
     progress: Option<ProgressEval>,
     last_progress: Instant,
@@ -169,6 +172,7 @@ impl Evaluations {
             choice_seed: cfg.seed.wrapping_add(3_000_003),
             settings: cfg.eval.clone(),
             gate_episodes: cfg.stop.eval_episodes,
+            choice_episodes: cfg.stop.choose_episodes.unwrap_or(cfg.stop.eval_episodes),
             progress: None,
             last_progress: Instant::now(),
             gate: None,
@@ -365,9 +369,9 @@ impl Evaluations {
             "choosing the run's policy: the best one evaluated while training ({}, at {:.0} s) and the learner's last, {} episodes each on starts of their own ...",
             best.describe(),
             best.wall_s,
-            self.gate_episodes
+            self.choice_episodes
         );
-        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, Split::Validation, &self.choose_env, self.gate_episodes, self.choice_seed, None) {
+        let score = |policy: PathBuf, kind: &str| match eval::evaluate(&policy, &self.map, Split::Validation, &self.choose_env, self.choice_episodes, self.choice_seed, None) {
             Ok(s) => append_eval(&self.run, status.wall_s(), kind, &s).map(|()| Some(Score::of(&s, status.wall_s()))),
             Err(e) => {
                 tracing::warn!(error = %format!("{e:#}"), "evaluation of {} failed", policy.display());
@@ -667,6 +671,11 @@ mod tests {
         let cfg = super::super::config::preset_config("explore-sac").unwrap();
         let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
         let mut evals = Evaluations::new(&cfg, dir.path());
+        // The preset chooses on more episodes than a gate has: there 5 against 9 collisions
+        // (of 60 each) is noise, and the same shares of 240 each are not.
+        assert_eq!((evals.gate_episodes, evals.choice_episodes), (60, 240));
+        assert!(!score(2, 60, 5, 0.0).clearly_safer_than(&score(9, 60, 9, 0.0)));
+        assert!(score(2, 240, 20, 0.0).clearly_safer_than(&score(9, 240, 36, 0.0)));
         std::fs::write(evals.policy(), "last").unwrap();
         let kept = evals.keep_best_over(Some(&score(2, 20, 0, 90.0)), Some(&score(9, 20, 20, 0.0))).unwrap();
         assert_eq!(kept, LAST, "nothing evaluated while training: the last stays");

@@ -78,7 +78,7 @@ pub(super) fn forest(rng: &mut Pcg64Mcg, size: f64, name: &str) -> Result<Map> {
     for _ in 0..darts {
         let c = [rng.random_range(-h..h), rng.random_range(-h..h)];
         let o = if rng.random_bool(boulder_share) { boulder(rng, c, 0.4, 1.2) } else { Obstacle::Circle { center: [cm(c[0]), cm(c[1])], radius: cm(rng.random_range(0.12..0.45)), height_m: 5.0 } };
-        if obstacles.iter().all(|p| gap(p, &o) >= min_gap) {
+        if inside_fence(&o, size) && obstacles.iter().all(|p| gap(p, &o) >= min_gap) {
             obstacles.push(o);
         }
     }
@@ -108,11 +108,20 @@ pub(super) fn field(rng: &mut Pcg64Mcg, size: f64, name: &str) -> Result<Map> {
     for _ in 0..boulders {
         let c = [rng.random_range(-h..h), rng.random_range(-h..h)];
         let b = boulder(rng, c, 0.5, 1.5);
-        if obstacles.iter().all(|p| gap(p, &b) >= 3.0) {
+        if inside_fence(&b, size) && obstacles.iter().all(|p| gap(p, &b) >= 3.0) {
             obstacles.push(b);
         }
     }
     vector_map(name, size, obstacles, shaded)
+}
+
+/// Whether `o` lies within the fence of a world of side `size` centred on the origin. A
+/// boulder drawn near the fence can reach past it (a field's, up to 1.5 m across a 1.2 m
+/// margin), and a map with an obstacle outside its bounds does not load: such a draw is
+/// skipped, after its random numbers are spent, so every other world stays as it was.
+fn inside_fence(o: &Obstacle, size: f64) -> bool {
+    let h = size / 2.0;
+    o.outline().iter().all(|p| p[0].abs() <= h && p[1].abs() <= h)
 }
 
 /// An irregular convex-ish boulder: 5–8 points at radii within [0.7 r, r] of `c`.

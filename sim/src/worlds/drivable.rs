@@ -3,6 +3,7 @@
 
 use std::collections::VecDeque;
 
+use crate::config::VehicleConfig;
 use crate::map::Map;
 
 /// The drivable lattice of a map and its 4-connected pieces.
@@ -19,6 +20,8 @@ pub struct DrivableSpace {
     piece: Vec<Option<u32>>,
     /// Points per piece, largest first.
     pub piece_sizes: Vec<usize>,
+    /// Per point: the distance to the nearest surface (m; 0 where the map is not free).
+    clearance_m: Vec<f32>,
 }
 
 impl DrivableSpace {
@@ -30,11 +33,16 @@ impl DrivableSpace {
         let height = (b.height() / cell_m).floor().max(1.0) as usize;
         let scene = map.scene(0.0, 2.0);
         let mut ok = vec![false; width * height];
+        let mut clear = vec![0.0f32; width * height];
         for j in 0..height {
             let y = b.min_y + (j as f64 + 0.5) * cell_m;
             for i in 0..width {
                 let x = b.min_x + (i as f64 + 0.5) * cell_m;
-                ok[j * width + i] = map.is_free(x, y) && scene.distance_to_nearest(x, y) >= clearance_m;
+                if map.is_free(x, y) {
+                    let d = scene.distance_to_nearest(x, y);
+                    clear[j * width + i] = d as f32;
+                    ok[j * width + i] = d >= clearance_m;
+                }
             }
         }
         // Label 4-connected pieces, then renumber them by size.
@@ -81,7 +89,7 @@ impl DrivableSpace {
         }
         let piece = label.into_iter().map(|l| l.map(|p| rank[p as usize])).collect();
         let piece_sizes = order.iter().map(|&p| sizes[p]).collect();
-        DrivableSpace { cell_m, width, height, origin: [b.min_x, b.min_y], piece, piece_sizes }
+        DrivableSpace { cell_m, width, height, origin: [b.min_x, b.min_y], piece, piece_sizes, clearance_m: clear }
     }
 
     /// One piece, and not empty.
@@ -112,6 +120,117 @@ impl DrivableSpace {
     /// True where lattice point (i, j) is drivable.
     pub fn drivable(&self, i: usize, j: usize) -> bool {
         i < self.width && j < self.height && self.piece[j * self.width + i].is_some()
+    }
+
+    /// The centre of lattice point (i, j) (m).
+    pub fn point_m(&self, i: usize, j: usize) -> (f64, f64) {
+        (self.origin[0] + (i as f64 + 0.5) * self.cell_m, self.origin[1] + (j as f64 + 0.5) * self.cell_m)
+    }
+
+    /// The drivable points where `car`, which cannot reverse, may drive in but never out: the
+    /// parts of the drivable space too narrow to turn round in that open onto the rest through
+    /// one mouth only.
+    ///
+    /// A point is a turning centre where the nearest surface is at least the car's turning
+    /// radius plus its circumradius away (a full circle about it is clear); the drivable points
+    /// within the turning radius of a centre lie on such circles, and the car can turn there (a
+    /// generous reading: it does not plan the turn). What is left of the drivable space is
+    /// narrow: passages and nooks. One whose border with the turning space is a single
+    /// 8-connected run of points leads nowhere (a dead end, however long); one that touches it in
+    /// two or more runs is a way through (or closes a loop the car can drive round) and is not
+    /// counted.
+    pub fn dead_ends(&self, car: &VehicleConfig) -> Vec<(usize, usize)> {
+        let turn_radius_m = car.min_turning_radius_m();
+        let turn_clearance_m = turn_radius_m + car.circumradius_m();
+        let (w, h) = (self.width, self.height);
+        let at = |i: usize, j: usize| j * w + i;
+        let drivable: Vec<bool> = self.piece.iter().map(Option::is_some).collect();
+        // The turning space: every drivable point within the turning radius of a centre.
+        let r = (turn_radius_m / self.cell_m).floor() as isize;
+        let mut turn = vec![false; w * h];
+        for j in 0..h {
+            for i in 0..w {
+                if !drivable[at(i, j)] || f64::from(self.clearance_m[at(i, j)]) < turn_clearance_m {
+                    continue;
+                }
+                for dj in -r..=r {
+                    for di in -r..=r {
+                        let (ii, jj) = (i as isize + di, j as isize + dj);
+                        if di * di + dj * dj <= r * r && ii >= 0 && jj >= 0 && (ii as usize) < w && (jj as usize) < h && drivable[at(ii as usize, jj as usize)] {
+                            turn[at(ii as usize, jj as usize)] = true;
+                        }
+                    }
+                }
+            }
+        }
+        let neighbours4 = |k: usize| {
+            let (i, j) = (k % w, k / w);
+            [(i > 0).then(|| k - 1), (i + 1 < w).then(|| k + 1), (j > 0).then(|| k - w), (j + 1 < h).then(|| k + w)].into_iter().flatten()
+        };
+        let mut seen = vec![false; w * h];
+        let mut mouth_seen = vec![false; w * h];
+        let mut out = Vec::new();
+        for start in 0..w * h {
+            if !drivable[start] || turn[start] || seen[start] {
+                continue;
+            }
+            // One passage (4-connected), and the turning-space points that border it.
+            let (mut passage, mut mouth) = (vec![start], Vec::new());
+            seen[start] = true;
+            let mut q = 0;
+            while q < passage.len() {
+                let k = passage[q];
+                q += 1;
+                for k2 in neighbours4(k) {
+                    if !drivable[k2] {
+                        continue;
+                    }
+                    if turn[k2] {
+                        if !mouth_seen[k2] {
+                            mouth_seen[k2] = true;
+                            mouth.push(k2);
+                        }
+                    } else if !seen[k2] {
+                        seen[k2] = true;
+                        passage.push(k2);
+                    }
+                }
+            }
+            // Runs of the border: its 8-connected pieces.
+            let mut runs = 0;
+            let mut stack = Vec::new();
+            for &m0 in &mouth {
+                if !mouth_seen[m0] {
+                    continue;
+                }
+                runs += 1;
+                mouth_seen[m0] = false;
+                stack.push(m0);
+                while let Some(k) = stack.pop() {
+                    let (i, j) = ((k % w) as isize, (k / w) as isize);
+                    for dj in -1..=1 {
+                        for di in -1..=1 {
+                            let (ii, jj) = (i + di, j + dj);
+                            if ii >= 0 && jj >= 0 && (ii as usize) < w && (jj as usize) < h && mouth_seen[at(ii as usize, jj as usize)] {
+                                mouth_seen[at(ii as usize, jj as usize)] = false;
+                                stack.push(at(ii as usize, jj as usize));
+                            }
+                        }
+                    }
+                }
+            }
+            if runs <= 1 {
+                out.extend(passage.iter().map(|&k| (k % w, k / w)));
+            }
+        }
+        out
+    }
+
+    /// Share of the drivable points that lie in [`dead_ends`](Self::dead_ends) (0 when nothing
+    /// is drivable).
+    pub fn dead_end_share(&self, car: &VehicleConfig) -> f64 {
+        let all: usize = self.piece_sizes.iter().sum();
+        if all == 0 { 0.0 } else { self.dead_ends(car).len() as f64 / all as f64 }
     }
 }
 
