@@ -75,7 +75,7 @@ pub fn run(cmd: WorldsCmd) -> Result<()> {
 
 /// One line on a world: size, obstacles, drivable share, and how much of it is dead ends the
 /// default car (which cannot reverse) could drive into but not turn round in.
-fn summary(map: &Map, space: &DrivableSpace) -> String {
+fn summary(map: &Map, space: &DrivableSpace, dead_share: f64) -> String {
     let things = if map.grid.is_some() { "grid".to_string() } else { format!("{} obstacles, {} shaded", map.obstacles.len(), map.shaded.len()) };
     format!(
         "{:.1} m × {:.1} m, {things}, {:.0} m² drivable ({:.0} %) in one piece, {:.1} % of it in dead ends too narrow to turn round in",
@@ -83,7 +83,7 @@ fn summary(map: &Map, space: &DrivableSpace) -> String {
         map.bounds.height(),
         space.area_m2(),
         100.0 * space.share(),
-        100.0 * space.dead_end_share(&VehicleConfig::default())
+        100.0 * dead_share
     )
 }
 
@@ -94,7 +94,8 @@ fn generate_cmd(family: &str, seed: u64, out: &Path, resolution: f64) -> Result<
     let title = format!("{} — {:.1} m × {:.1} m", map.name, map.bounds.width(), map.bounds.height());
     let mut c = Canvas::map(&map, default_px_per_m(&map), &title)?;
     let space = DrivableSpace::of(&map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
-    c.footer(&summary(&map, &space))?;
+    let line = summary(&map, &space, space.dead_end_share(&VehicleConfig::default()));
+    c.footer(&line)?;
     c.save_png(&png)?;
     println!("wrote {} (+ .pgm) and {}", yaml.display(), png.display());
     if let Some(text) = map.to_vector_yaml() {
@@ -102,7 +103,7 @@ fn generate_cmd(family: &str, seed: u64, out: &Path, resolution: f64) -> Result<
         std::fs::write(&v, text).with_context(|| format!("writing {}", v.display()))?;
         println!("wrote {} (vector form, with shaded regions)", v.display());
     }
-    println!("{}: {}", map.name, summary(&map, &space));
+    println!("{}: {line}", map.name);
     Ok(())
 }
 
@@ -120,7 +121,7 @@ fn show(family: &str, seeds: Range<u64>, columns: usize, out: &Path) -> Result<(
         let space = DrivableSpace::of(&map, DRIVE_CLEARANCE_M, DRIVABLE_CELL_M);
         let dead = space.dead_end_share(&VehicleConfig::default());
         c.footer(&format!("{:.0} % drivable, {:.1} % of it dead ends", 100.0 * space.share(), 100.0 * dead))?;
-        println!("{}: {}", map.name, summary(&map, &space));
+        println!("{}: {}", map.name, summary(&map, &space, dead));
         dead_sum += dead;
         tiles.push(c);
     }

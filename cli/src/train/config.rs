@@ -75,7 +75,7 @@ pub struct StopCriteria {
     /// exact test on their collision counts at 5 %), the last one beside it as `policy-last.safetensors`;
     /// false: the learner's last one [ours, as Stable-Baselines3's `EvalCallback` keeps its
     /// `best_model`: an off-policy critic can diverge late in a run, and a time limit then
-    /// stops on a policy worse than one it had (docs/experiments.md, "A run")].
+    /// stops on a policy worse than one it had (docs/cluster.md, "A run")].
     pub keep_best: bool,
     /// With `keep_best`: every this many minutes the newest policy is also evaluated as the
     /// criterion's evaluations are (validation worlds, `eval_episodes`, the same starts),

@@ -138,7 +138,8 @@ impl DrivableSpace {
     /// narrow: passages and nooks. One whose border with the turning space is a single
     /// 8-connected run of points leads nowhere (a dead end, however long); one that touches it in
     /// two or more runs is a way through (or closes a loop the car can drive round) and is not
-    /// counted.
+    /// counted, nor is a piece with no turning space at all. A narrow loop round an obstacle that
+    /// returns through its one mouth counts as a dead end: the reading errs towards more.
     pub fn dead_ends(&self, car: &VehicleConfig) -> Vec<(usize, usize)> {
         let turn_radius_m = car.min_turning_radius_m();
         let turn_clearance_m = turn_radius_m + car.circumradius_m();
@@ -219,7 +220,7 @@ impl DrivableSpace {
                     }
                 }
             }
-            if runs <= 1 {
+            if runs == 1 {
                 out.extend(passage.iter().map(|&k| (k % w, k / w)));
             }
         }
