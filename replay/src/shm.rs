@@ -41,6 +41,11 @@
 //! increasing sequence order, so one actor id has at most one connected writer at a time; a
 //! second one is refused ([`ShmWriter::poll_acks`](mapless_net::shm::ShmWriter::poll_acks) fails with `ShmError::BadRequest`)
 //! until the first disconnects or dies.
+//! A writer connection is also a stream, as a gRPC `Insert` stream is: once one of its batches
+//! is not stored (answered "resend after reconnecting", or dropped because its writer went
+//! away while it waited for the rate limiter), nothing later from that connection is stored,
+//! so the table never holds batch *k*+1 without *k* and never takes *k*'s resend for a
+//! duplicate ([`Ingest::handle`]).
 //!
 //! Every answer echoes the nonce of its request's header (one per writer connection), and a
 //! writer takes only answers that carry its own. iceoryx2 routes a response by the server's
@@ -110,6 +115,7 @@ struct Counters {
     duplicate_batches: AtomicU64,
     rejected_batches: AtomicU64,
     aborted_batches: AtomicU64,
+    abandoned_batches: AtomicU64,
     insert_stalls: AtomicU64,
     dead_nodes_cleaned: AtomicU64,
     receive_errors: AtomicU64,
@@ -126,6 +132,10 @@ pub struct ShmStats {
     pub rejected_batches: u64,
     /// Batches refused because another connected writer owns the actor id.
     pub aborted_batches: u64,
+    /// Batches not stored because an earlier batch of the same writer connection was not
+    /// (its writer went away, or was told to resend): the writer resends them all on its next
+    /// connection ([`Ingest::handle`]).
+    pub abandoned_batches: u64,
     /// Insert attempts that hit `insert_wait_ms` on the rate limiter and were retried.
     pub insert_stalls: u64,
     /// Dead iceoryx2 nodes (killed writers or servers) whose resources were removed.
@@ -210,6 +220,7 @@ impl ShmIngest {
             duplicate_batches: g(&c.duplicate_batches),
             rejected_batches: g(&c.rejected_batches),
             aborted_batches: g(&c.aborted_batches),
+            abandoned_batches: g(&c.abandoned_batches),
             insert_stalls: g(&c.insert_stalls),
             dead_nodes_cleaned: g(&c.dead_nodes_cleaned),
             receive_errors: g(&c.receive_errors),
@@ -292,6 +303,11 @@ struct Ingest {
     counters: Arc<Counters>,
     /// actor id → the client port that writes it (one connected writer per actor id).
     owners: HashMap<String, UniqueClientId>,
+    /// Writer connections one of whose batches was answered "resend after reconnecting":
+    /// nothing later from them is stored (see [`Ingest::handle`]). Pruned with `owners`.
+    ended: HashSet<UniqueClientId>,
+    next_prune: Instant,
+    last_receive_warning: Option<Instant>,
 }
 
 impl Ingest {
@@ -313,59 +329,31 @@ impl Ingest {
             ServerCreateError::ExceedsMaxSupportedServers => closed(&svc, "another live ShmIngest already serves this service"),
             e => closed(&svc, format!("cannot create the server port: {e:?}")),
         })?;
-        Ok(Ingest { stalled: None, queued: VecDeque::new(), spare: BytesMut::new(), server, service, node, table, cfg, counters, owners: HashMap::new() })
+        let next_prune = Instant::now() + Duration::from_millis(cfg.dead_node_scan_ms);
+        Ok(Ingest {
+            stalled: None,
+            queued: VecDeque::new(),
+            spare: BytesMut::new(),
+            server,
+            service,
+            node,
+            table,
+            cfg,
+            counters,
+            owners: HashMap::new(),
+            ended: HashSet::new(),
+            next_prune,
+            last_receive_warning: None,
+        })
     }
 
     fn run(mut self, stop: &AtomicBool) {
         let mut idle = Backoff::new(self.cfg.idle_sleep_us);
-        let scan = Duration::from_millis(self.cfg.dead_node_scan_ms);
-        let mut next_prune = Instant::now() + scan;
-        let mut last_receive_warning: Option<Instant> = None;
         while !stop.load(Ordering::Relaxed) {
-            if Instant::now() >= next_prune {
-                self.prune_owners();
-                next_prune = Instant::now() + scan;
-            }
-            if let Some(s) = self.stalled.take() {
-                if !s.request.is_connected() {
-                    tracing::debug!(actor_id = %s.batch.actor_id, sequence = s.batch.sequence, "writer of a rate-limited batch went away; dropped (it resends after reconnecting)");
-                    continue;
-                }
-                self.insert(s.request, s.batch, s.payload);
-                if self.stalled.is_some() {
-                    continue; // still blocked; insert() already waited insert_wait_ms
-                }
-            }
-            if self.queued.is_empty() {
-                loop {
-                    match self.server.receive() {
-                        Ok(Some(request)) => {
-                            self.queued.push_back(request);
-                            if self.queued.len() >= MAX_QUEUED {
-                                break;
-                            }
-                        }
-                        Ok(None) => break,
-                        Err(e) => {
-                            // Usually a writer that died half-way; cleaning dead nodes drops its
-                            // connection. Keep serving meanwhile.
-                            self.counters.receive_errors.fetch_add(1, Ordering::Relaxed);
-                            if last_receive_warning.is_none_or(|t| t.elapsed() > Duration::from_secs(5)) {
-                                tracing::warn!(error = ?e, "shm receive failed; cleaning dead nodes and retrying");
-                                last_receive_warning = Some(Instant::now());
-                            }
-                            self.cleanup_dead_nodes();
-                            break;
-                        }
-                    }
-                }
-            }
-            match self.queued.pop_front() {
-                Some(request) => {
-                    idle.reset();
-                    self.handle(request);
-                }
-                None => idle.snooze(),
+            if self.turn() {
+                idle.reset();
+            } else {
+                idle.snooze();
             }
         }
         if let Some(s) = self.stalled.take() {
@@ -378,6 +366,59 @@ impl Ingest {
         tracing::info!("shared-memory ingest stopped");
     }
 
+    /// One pass of the ingest loop: retries the insert waiting for the rate limiter, or else
+    /// handles the next request (receiving every waiting one first when none is queued).
+    /// False when there was nothing to do.
+    fn turn(&mut self) -> bool {
+        if Instant::now() >= self.next_prune {
+            self.prune_owners();
+            self.next_prune = Instant::now() + Duration::from_millis(self.cfg.dead_node_scan_ms);
+        }
+        if let Some(s) = self.stalled.take() {
+            // By its client port, not `ActiveRequest::is_connected`: iceoryx2 may hand a gone
+            // writer's connection slot to a new writer, and the request then reads as
+            // connected again. A port that is gone never comes back.
+            if !self.client_connected(s.request.origin()) {
+                self.counters.abandoned_batches.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(actor_id = %s.batch.actor_id, sequence = s.batch.sequence, "writer of a rate-limited batch went away; dropped with everything after it (it resends after reconnecting)");
+                return true;
+            }
+            self.insert(s.request, s.batch, s.payload);
+            return true; // stalled again or not, insert() already waited at most insert_wait_ms
+        }
+        if self.queued.is_empty() {
+            loop {
+                match self.server.receive() {
+                    Ok(Some(request)) => {
+                        self.queued.push_back(request);
+                        if self.queued.len() >= MAX_QUEUED {
+                            break;
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(e) => {
+                        // Usually a writer that died half-way; cleaning dead nodes drops its
+                        // connection. Keep serving meanwhile.
+                        self.counters.receive_errors.fetch_add(1, Ordering::Relaxed);
+                        if self.last_receive_warning.is_none_or(|t| t.elapsed() > Duration::from_secs(5)) {
+                            tracing::warn!(error = ?e, "shm receive failed; cleaning dead nodes and retrying");
+                            self.last_receive_warning = Some(Instant::now());
+                        }
+                        self.cleanup_dead_nodes();
+                        break;
+                    }
+                }
+            }
+        }
+        match self.queued.pop_front() {
+            Some(request) => {
+                self.handle(request);
+                true
+            }
+            None => false,
+        }
+    }
+
     fn cleanup_dead_nodes(&self) {
         let s = self.node.try_cleanup_dead_nodes();
         if s.cleanups > 0 {
@@ -387,15 +428,36 @@ impl Ingest {
     }
 
     /// Decodes, checks and inserts one request; answers it unless the insert stalls.
+    ///
+    /// A writer connection is a stream, as a gRPC `Insert` stream is: once one of its batches
+    /// is not stored — its writer went away while the batch waited for the rate limiter, or
+    /// it was answered "resend after reconnecting" — nothing later from that connection is
+    /// stored either. Its writer resends them all, in order, on its next connection. Storing
+    /// a later one would leave a hole the table cannot see: it de-duplicates on the highest
+    /// sequence stored, so the resend of the missing batch would be acknowledged as a
+    /// duplicate and its rows never stored (a compose drill once lost batches 3–5 of an
+    /// actor-shm replica this way).
     fn handle(&mut self, request: InsertRequest) {
         let header = *request.user_header();
+        let client = request.origin();
+        if !self.client_connected(client) {
+            // Not answered: nobody waits for it, and an answer could reach the writer's next
+            // connection if iceoryx2 gave it the same slot (see `Conn::nonce` in mapless-net).
+            self.counters.abandoned_batches.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if self.ended.contains(&client) {
+            self.counters.abandoned_batches.fetch_add(1, Ordering::Relaxed);
+            return respond(&request, WireAck::failed(header.sequence(), CODE_UNAVAILABLE, "an earlier batch of this connection was not stored; resend after reconnecting"));
+        }
         let actor = match header.actor_id() {
             Ok(a) => a.to_string(),
             Err(why) => return self.reject(&request, "", header.sequence(), &why),
         };
-        if let Err(why) = self.claim(&actor, request.origin()) {
+        if let Err(why) = self.claim(&actor, client) {
             self.counters.aborted_batches.fetch_add(1, Ordering::Relaxed);
             tracing::warn!(actor_id = %actor, "{why}");
+            self.ended.insert(client);
             return respond(&request, WireAck::failed(header.sequence(), CODE_ABORTED, &why));
         }
         let payload = request.payload();
@@ -462,10 +524,12 @@ impl Ingest {
             // A full disk is reported once by the log and counted; the actor resends.
             Err(e @ ReplayError::DiskFull { .. }) => {
                 tracing::debug!(actor_id = %actor_id, sequence, error = %e, "shm insert refused: disk full");
+                self.ended.insert(request.origin());
                 respond(&request, WireAck::failed(sequence, CODE_UNAVAILABLE, &e.to_string()));
             }
             Err(e) => {
                 tracing::warn!(actor_id = %actor_id, sequence, error = %e, "shm insert failed");
+                self.ended.insert(request.origin());
                 respond(&request, WireAck::failed(sequence, CODE_UNAVAILABLE, &e.to_string()));
             }
         }
@@ -521,6 +585,8 @@ impl Ingest {
             }
             keep
         });
+        // A port that is gone stays gone: `handle` drops what it still sent without this set.
+        self.ended.retain(|c| live.contains(c));
     }
 }
 
@@ -599,5 +665,98 @@ fn live_nodes_using(node: &Node<ServerSvc>, name: &ServiceName) -> usize {
         Ok(Some(d)) => d.dynamic_details.map_or(0, |dd| dd.nodes.iter().filter(|n| matches!(n, NodeState::Alive(_))).count()),
         Ok(None) => 0,
         Err(_) => usize::MAX, // cannot tell: do not remove anything
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use mapless_net::shm::{Ack, ShmWriter};
+    use mapless_proto::{Transition, TransitionBatchBuilder};
+
+    use super::*;
+    use crate::config::{RateLimiterConfig, TableConfig};
+
+    /// `rows` rows of `actor`'s batch `seq`, 3 floats of observation.
+    fn batch(actor: &str, seq: u64, rows: usize) -> TransitionBatch {
+        let mut b = TransitionBatchBuilder::new(3, 2);
+        for i in 0..rows {
+            let r = (seq * 1000 + i as u64) as f32;
+            b.push(Transition {
+                obs: &[r, 0.0, 1.0],
+                action: &[0.1, -0.1],
+                reward: r,
+                next_obs: &[r, 1.0, 0.0],
+                terminal: false,
+                truncated: false,
+                episode_id: seq,
+                step: i as u32,
+                policy_version: 1,
+            })
+            .unwrap();
+        }
+        b.finish(actor, seq)
+    }
+
+    /// The ingest's loop, driven by hand, sees a writer reconnect while one of its batches
+    /// waits for the rate limiter and the next is queued behind it, and the limiter opens
+    /// just then. Before, the waiting batch was dropped (its writer had gone) and the queued
+    /// one stored: the table held batch 4 without batch 3, and answered the resend of 3
+    /// "duplicate", so the writer counted 3 delivered that no sample could ever draw.
+    #[test]
+    fn a_writer_that_reconnects_behind_the_rate_limiter_has_every_batch_stored_in_order() {
+        let domain = format!("mlu{}x_", std::process::id());
+        let cfg = ShmConfig { prefix: "mapless-unit/reconnect".into(), domain: domain.clone(), insert_wait_ms: 1, dead_node_scan_ms: 100, ..ShmConfig::default() };
+        // Inserts wait once more than 110 rows are unsampled: of 100-row batches, two pass
+        // and then one per 100 rows sampled.
+        let limiter = RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 };
+        let table = Arc::new(Table::new(TableConfig { capacity: 10_000, obs_dim: 3, rate_limiter: limiter, max_batch_rows: 100, max_sample_rows: 100, ..TableConfig::default() }, 1).unwrap());
+        let counters = Arc::new(Counters::default());
+        let mut ingest = Ingest::open(Arc::clone(&table), cfg.clone(), Arc::clone(&counters)).unwrap();
+        let mut w = ShmWriter::connect(&cfg, "a").unwrap();
+        for seq in 1..=4 {
+            w.send(&batch("a", seq, 100)).unwrap();
+        }
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while ingest.stalled.is_none() {
+            ingest.turn();
+            assert!(Instant::now() < deadline, "batch 3 never waited for the rate limiter");
+        }
+        assert_eq!((ingest.stalled.as_ref().map(|s| s.batch.sequence), ingest.queued.len()), (Some(3), 1), "batch 3 waits, batch 4 is queued behind it");
+        w.reconnect().unwrap(); // the old connection's port goes; 3 and 4 are sent again
+        let sample = || table.sample(100, None, Some(Instant::now() + Duration::from_secs(5))).unwrap();
+        sample(); // room for one more batch, which must be batch 3
+        let mut acks = Vec::new();
+        while w.unacked() > 0 {
+            if !ingest.turn() && ingest.stalled.is_none() {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            if ingest.stalled.is_some() {
+                sample();
+            }
+            match w.poll_acks() {
+                Ok(a) => acks.extend(a),
+                // As the actor's client does: reconnect and resend what is unacknowledged.
+                Err(_) => w.reconnect().unwrap(),
+            }
+            assert!(Instant::now() < deadline, "{} batches never acknowledged; acks {acks:?}", w.unacked());
+        }
+        let acked: Vec<u64> = acks
+            .iter()
+            .map(|a| match a {
+                Ack::Stored(s) => s.sequence,
+                Ack::Rejected { sequence, reason } => panic!("batch {sequence} rejected: {reason}"),
+            })
+            .collect();
+        assert_eq!(acked, [1, 2, 3, 4]);
+        // What the writer was told is what the table holds: four batches, none missing.
+        let a = &table.actors()["a"];
+        assert_eq!((a.batches, a.rows, a.last_sequence), (4, 400, 4), "acks {acks:?}");
+        assert!(counters.abandoned_batches.load(Ordering::Relaxed) >= 2, "the old connection's 3 and 4 were not stored");
+        drop((ingest, w));
+        for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
+            if e.file_name().to_string_lossy().starts_with(&domain) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
     }
 }

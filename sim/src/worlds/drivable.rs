@@ -122,11 +122,6 @@ impl DrivableSpace {
         i < self.width && j < self.height && self.piece[j * self.width + i].is_some()
     }
 
-    /// The centre of lattice point (i, j) (m).
-    pub fn point_m(&self, i: usize, j: usize) -> (f64, f64) {
-        (self.origin[0] + (i as f64 + 0.5) * self.cell_m, self.origin[1] + (j as f64 + 0.5) * self.cell_m)
-    }
-
     /// The drivable points where `car`, which cannot reverse, may drive in but never out: the
     /// parts of the drivable space too narrow to turn round in that open onto the rest through
     /// one mouth only.
