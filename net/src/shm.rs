@@ -9,7 +9,8 @@
 //!   ShmWriter (iceoryx2 client) ── request ───────► ShmIngest thread (iceoryx2 server)
 //!     window of unacked batches    payload: [u8] =    decode once ─► Table::insert(deadline)
 //!     (kept for resend)            prost TransitionBatch     │
-//!                                  user header: actor id, sequence, writer nonce
+//!                                  user header: actor id, sequence, writer nonce,
+//!                                    request number on the connection
 //!                 ◄── WireAck (per request, nonce echoed) ───┘
 //! ```
 
@@ -175,11 +176,15 @@ impl ShmConfig {
 /// Request user header: who sent the batch, readable even when the payload is garbage.
 #[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[repr(C)]
-#[type_name("mapless.shm.v2.BatchHeader")]
+#[type_name("mapless.shm.v3.BatchHeader")]
 pub struct BatchHeader {
     sequence: u64,
     /// The sending connection's random nonce, echoed in its answer ([`WireAck`]).
     writer: u64,
+    /// The request's place on its connection: 0 for the first request the connection sends,
+    /// then 1, 2, … An ingest that sees a connection's requests jump, or begin anywhere but
+    /// at 0 (the first ones went to an earlier ingest), stores nothing more from it.
+    request: u64,
     actor_id_len: u32,
     _reserved: u32,
     actor_id: [u8; MAX_ACTOR_ID_BYTES],
@@ -187,15 +192,15 @@ pub struct BatchHeader {
 
 impl Default for BatchHeader {
     fn default() -> Self {
-        BatchHeader { sequence: 0, writer: 0, actor_id_len: 0, _reserved: 0, actor_id: [0; MAX_ACTOR_ID_BYTES] }
+        BatchHeader { sequence: 0, writer: 0, request: 0, actor_id_len: 0, _reserved: 0, actor_id: [0; MAX_ACTOR_ID_BYTES] }
     }
 }
 
 impl BatchHeader {
-    /// The header of `actor_id`'s batch `sequence`, sent on the connection whose nonce is
-    /// `writer`.
-    pub fn new(actor_id: &str, sequence: u64, writer: u64) -> BatchHeader {
-        let mut h = BatchHeader { sequence, writer, actor_id_len: actor_id.len() as u32, ..BatchHeader::default() };
+    /// The header of `actor_id`'s batch `sequence`, the connection's request number `request`
+    /// (from 0), sent on the connection whose nonce is `writer`.
+    pub fn new(actor_id: &str, sequence: u64, writer: u64, request: u64) -> BatchHeader {
+        let mut h = BatchHeader { sequence, writer, request, actor_id_len: actor_id.len() as u32, ..BatchHeader::default() };
         h.actor_id[..actor_id.len()].copy_from_slice(actor_id.as_bytes());
         h
     }
@@ -205,7 +210,7 @@ impl BatchHeader {
     /// the headers a buggy or hostile writer could send.
     #[doc(hidden)]
     pub fn from_raw_parts(sequence: u64, actor_id_len: u32, actor_id: [u8; MAX_ACTOR_ID_BYTES]) -> BatchHeader {
-        BatchHeader { sequence, writer: 0, actor_id_len, _reserved: 0, actor_id }
+        BatchHeader { sequence, writer: 0, request: 0, actor_id_len, _reserved: 0, actor_id }
     }
 
     /// The sender's batch sequence.
@@ -216,6 +221,11 @@ impl BatchHeader {
     /// The sending connection's nonce, which every answer to this batch must echo.
     pub fn writer(&self) -> u64 {
         self.writer
+    }
+
+    /// The request's number on its connection, from 0 ([`BatchHeader::new`]).
+    pub fn request(&self) -> u64 {
+        self.request
     }
 
     /// The sender's actor id, checked.
@@ -404,6 +414,8 @@ struct Conn {
     /// writer can reach the new one's pending request of the same number. Without the nonce
     /// that stranger's "stored" would be taken for a batch the ingest never received.
     nonce: u64,
+    /// Requests sent on this connection (the next one's [`BatchHeader::request`]).
+    sent: u64,
 }
 
 /// A random nonce, never 0 (the value of a header made by `BatchHeader::from_raw_parts`).
@@ -437,7 +449,7 @@ impl Conn {
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .create()
             .map_err(|e| closed(&svc, format!("cannot create the client port: {e:?}")))?;
-        Ok(Conn { client, service, node, window, nonce: connection_nonce() })
+        Ok(Conn { client, service, node, window, nonce: connection_nonce(), sent: 0 })
     }
 
     /// Are the servers the service lists alive? (A killed server stays listed until someone
@@ -655,14 +667,14 @@ impl ShmWriter {
         if self.broken.is_some() {
             return;
         }
-        let Some(conn) = self.conn.as_ref() else {
+        let Some(conn) = self.conn.as_mut() else {
             return self.set_broken(Broken::Unavailable("not connected".into()));
         };
         let mut failure = None;
         for e in self.window.iter_mut().filter(|e| e.pending.is_none() && e.answer.is_none()) {
             let request = match conn.client.loan_slice_uninit(e.bytes.len()) {
                 Ok(mut r) => {
-                    *r.user_header_mut() = BatchHeader::new(&self.actor_id, e.sequence, conn.nonce);
+                    *r.user_header_mut() = BatchHeader::new(&self.actor_id, e.sequence, conn.nonce, conn.sent);
                     r.write_from_slice(&e.bytes)
                 }
                 Err(err) => {
@@ -675,7 +687,10 @@ impl ShmWriter {
                     failure = Some("no ShmIngest serves it".to_string());
                     break;
                 }
-                Ok(p) => e.pending = Some(p),
+                Ok(p) => {
+                    conn.sent += 1;
+                    e.pending = Some(p);
+                }
                 Err(err) => {
                     failure = Some(format!("cannot send: {err:?}"));
                     break;

@@ -7,7 +7,8 @@
 //!   ShmWriter (iceoryx2 client) ── request ───────► ShmIngest thread (iceoryx2 server)
 //!     window of unacked batches    payload: [u8] =    decode once ─► Table::insert(deadline)
 //!     (kept for resend)            prost TransitionBatch     │
-//!                                  user header: actor id, sequence, writer nonce
+//!                                  user header: actor id, sequence, writer nonce,
+//!                                    request number on the connection
 //!                 ◄── WireAck (per request, nonce echoed) ───┘
 //!                                                   janitor thread: Node::try_cleanup_dead_nodes
 //! ```
@@ -42,9 +43,10 @@
 //! second one is refused ([`ShmWriter::poll_acks`](mapless_net::shm::ShmWriter::poll_acks) fails with `ShmError::BadRequest`)
 //! until the first disconnects or dies.
 //! A writer connection is also a stream, as a gRPC `Insert` stream is: once one of its batches
-//! is not stored (answered "resend after reconnecting", or dropped because its writer went
-//! away while it waited for the rate limiter), nothing later from that connection is stored,
-//! so the table never holds batch *k*+1 without *k* and never takes *k*'s resend for a
+//! is not stored and must be resent (answered "resend after reconnecting", dropped because its
+//! writer went away while it waited for the rate limiter, or sent to an ingest that stopped:
+//! every request carries its number on its connection), nothing later from that connection is
+//! stored, so the table never holds batch *k*+1 without *k* and never takes *k*'s resend for a
 //! duplicate ([`Ingest::handle`]).
 //!
 //! Every answer echoes the nonce of its request's header (one per writer connection), and a
@@ -132,9 +134,9 @@ pub struct ShmStats {
     pub rejected_batches: u64,
     /// Batches refused because another connected writer owns the actor id.
     pub aborted_batches: u64,
-    /// Batches not stored because an earlier batch of the same writer connection was not
-    /// (its writer went away, or was told to resend): the writer resends them all on its next
-    /// connection ([`Ingest::handle`]).
+    /// Batches not stored because their writer connection was gone or had ended: its writer
+    /// went away, or one of its batches was not stored and must be resent (the batch itself
+    /// counts); the writer resends them all on its next connection ([`Ingest::handle`]).
     pub abandoned_batches: u64,
     /// Insert attempts that hit `insert_wait_ms` on the rate limiter and were retried.
     pub insert_stalls: u64,
@@ -306,6 +308,9 @@ struct Ingest {
     /// Writer connections one of whose batches was answered "resend after reconnecting":
     /// nothing later from them is stored (see [`Ingest::handle`]). Pruned with `owners`.
     ended: HashSet<UniqueClientId>,
+    /// Per writer connection, the [`BatchHeader::request`] its next request must carry.
+    /// Pruned with `owners`.
+    next_request: HashMap<UniqueClientId, u64>,
     next_prune: Instant,
     last_receive_warning: Option<Instant>,
 }
@@ -342,6 +347,7 @@ impl Ingest {
             counters,
             owners: HashMap::new(),
             ended: HashSet::new(),
+            next_request: HashMap::new(),
             next_prune,
             last_receive_warning: None,
         })
@@ -430,13 +436,15 @@ impl Ingest {
     /// Decodes, checks and inserts one request; answers it unless the insert stalls.
     ///
     /// A writer connection is a stream, as a gRPC `Insert` stream is: once one of its batches
-    /// is not stored — its writer went away while the batch waited for the rate limiter, or
-    /// it was answered "resend after reconnecting" — nothing later from that connection is
-    /// stored either. Its writer resends them all, in order, on its next connection. Storing
-    /// a later one would leave a hole the table cannot see: it de-duplicates on the highest
+    /// is not stored for a reason its writer must retry — its writer went away while the
+    /// batch waited for the rate limiter, it was answered "resend after reconnecting", or it
+    /// never reached this ingest (the connection's request numbers jump, or begin past 0
+    /// because the first ones went to an ingest that has since stopped) — nothing later from
+    /// that connection is stored either, and its writer resends them all, in order, on its
+    /// next connection. (A batch rejected as invalid is final: its writer moves on.) Storing a
+    /// later one would leave a hole the table cannot see: it de-duplicates on the highest
     /// sequence stored, so the resend of the missing batch would be acknowledged as a
-    /// duplicate and its rows never stored (a compose drill once lost batches 3–5 of an
-    /// actor-shm replica this way).
+    /// duplicate and its rows never stored.
     fn handle(&mut self, request: InsertRequest) {
         let header = *request.user_header();
         let client = request.origin();
@@ -450,6 +458,18 @@ impl Ingest {
             self.counters.abandoned_batches.fetch_add(1, Ordering::Relaxed);
             return respond(&request, WireAck::failed(header.sequence(), CODE_UNAVAILABLE, "an earlier batch of this connection was not stored; resend after reconnecting"));
         }
+        // A connection this ingest meets half-way (its first requests went to an earlier
+        // ingest, which may have stopped before storing them) or whose requests jump is
+        // ended the same way: what is missing may be a batch never stored.
+        let expected = self.next_request.get(&client).copied().unwrap_or(0);
+        if header.request() != expected {
+            self.counters.abandoned_batches.fetch_add(1, Ordering::Relaxed);
+            self.ended.insert(client);
+            let why = format!("request {} of this connection arrived where {expected} was due (sent to an earlier ingest, or lost); resend after reconnecting", header.request());
+            tracing::debug!(sequence = header.sequence(), "{why}");
+            return respond(&request, WireAck::failed(header.sequence(), CODE_UNAVAILABLE, &why));
+        }
+        self.next_request.insert(client, expected + 1);
         let actor = match header.actor_id() {
             Ok(a) => a.to_string(),
             Err(why) => return self.reject(&request, "", header.sequence(), &why),
@@ -585,8 +605,9 @@ impl Ingest {
             }
             keep
         });
-        // A port that is gone stays gone: `handle` drops what it still sent without this set.
+        // A port that is gone stays gone: `handle` drops what it still sent without these.
         self.ended.retain(|c| live.contains(c));
+        self.next_request.retain(|c, _| live.contains(c));
     }
 }
 
@@ -670,7 +691,7 @@ fn live_nodes_using(node: &Node<ServerSvc>, name: &ServiceName) -> usize {
 
 #[cfg(test)]
 mod tests {
-    use mapless_net::shm::{Ack, ShmWriter};
+    use mapless_net::shm::{Ack, ShmWriter, remove_private_domain_files};
     use mapless_proto::{Transition, TransitionBatchBuilder};
 
     use super::*;
@@ -697,6 +718,59 @@ mod tests {
         b.finish(actor, seq)
     }
 
+    /// A service in an iceoryx2 domain of this test's own; its management file is removed
+    /// when the guard drops, passed or failed.
+    struct Domain(ShmConfig);
+
+    impl Domain {
+        fn new(tag: &str) -> Domain {
+            let domain = format!("mlu{}{tag}_", std::process::id());
+            Domain(ShmConfig { prefix: format!("mapless-unit/{tag}"), domain, insert_wait_ms: 1, dead_node_scan_ms: 100, ..ShmConfig::default() })
+        }
+    }
+
+    impl Drop for Domain {
+        fn drop(&mut self) {
+            remove_private_domain_files(&self.0.domain);
+        }
+    }
+
+    /// Inserts wait once more than 110 rows are unsampled: of 100-row batches, two pass and
+    /// then one per 100 rows sampled.
+    fn rate_limited_table() -> Arc<Table> {
+        let limiter = RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 };
+        Arc::new(Table::new(TableConfig { capacity: 10_000, obs_dim: 3, rate_limiter: limiter, max_batch_rows: 100, max_sample_rows: 100, ..TableConfig::default() }, 1).unwrap())
+    }
+
+    fn sample(table: &Table) {
+        table.sample(100, None, Some(Instant::now() + Duration::from_secs(5))).unwrap();
+    }
+
+    /// Drives `ingest` by hand, as the actor's client drives `w` (reconnecting whenever the
+    /// connection breaks), sampling whenever an insert waits for the rate limiter, until
+    /// every batch is acknowledged; returns the sequences acknowledged, in order.
+    fn deliver(ingest: &mut Ingest, w: &mut ShmWriter, table: &Table) -> Vec<u64> {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let mut acked = Vec::new();
+        while w.unacked() > 0 {
+            if !ingest.turn() && ingest.stalled.is_none() {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            if ingest.stalled.is_some() {
+                sample(table);
+            }
+            match w.poll_acks() {
+                Ok(acks) => acked.extend(acks.iter().map(|a| match a {
+                    Ack::Stored(s) => s.sequence,
+                    Ack::Rejected { sequence, reason } => panic!("batch {sequence} rejected: {reason}"),
+                })),
+                Err(_) => w.reconnect().unwrap(),
+            }
+            assert!(Instant::now() < deadline, "{} batches never acknowledged; acknowledged {acked:?}", w.unacked());
+        }
+        acked
+    }
+
     /// The ingest's loop, driven by hand, sees a writer reconnect while one of its batches
     /// waits for the rate limiter and the next is queued behind it, and the limiter opens
     /// just then. Before, the waiting batch was dropped (its writer had gone) and the queued
@@ -704,15 +778,11 @@ mod tests {
     /// "duplicate", so the writer counted 3 delivered that no sample could ever draw.
     #[test]
     fn a_writer_that_reconnects_behind_the_rate_limiter_has_every_batch_stored_in_order() {
-        let domain = format!("mlu{}x_", std::process::id());
-        let cfg = ShmConfig { prefix: "mapless-unit/reconnect".into(), domain: domain.clone(), insert_wait_ms: 1, dead_node_scan_ms: 100, ..ShmConfig::default() };
-        // Inserts wait once more than 110 rows are unsampled: of 100-row batches, two pass
-        // and then one per 100 rows sampled.
-        let limiter = RateLimiterConfig { min_size_to_sample: 10, samples_per_insert: Some(1.0), error_buffer: 100.0 };
-        let table = Arc::new(Table::new(TableConfig { capacity: 10_000, obs_dim: 3, rate_limiter: limiter, max_batch_rows: 100, max_sample_rows: 100, ..TableConfig::default() }, 1).unwrap());
+        let d = Domain::new("stall");
+        let table = rate_limited_table();
         let counters = Arc::new(Counters::default());
-        let mut ingest = Ingest::open(Arc::clone(&table), cfg.clone(), Arc::clone(&counters)).unwrap();
-        let mut w = ShmWriter::connect(&cfg, "a").unwrap();
+        let mut ingest = Ingest::open(Arc::clone(&table), d.0.clone(), Arc::clone(&counters)).unwrap();
+        let mut w = ShmWriter::connect(&d.0, "a").unwrap();
         for seq in 1..=4 {
             w.send(&batch("a", seq, 100)).unwrap();
         }
@@ -722,41 +792,35 @@ mod tests {
             assert!(Instant::now() < deadline, "batch 3 never waited for the rate limiter");
         }
         assert_eq!((ingest.stalled.as_ref().map(|s| s.batch.sequence), ingest.queued.len()), (Some(3), 1), "batch 3 waits, batch 4 is queued behind it");
-        w.reconnect().unwrap(); // the old connection's port goes; 3 and 4 are sent again
-        let sample = || table.sample(100, None, Some(Instant::now() + Duration::from_secs(5))).unwrap();
-        sample(); // room for one more batch, which must be batch 3
-        let mut acks = Vec::new();
-        while w.unacked() > 0 {
-            if !ingest.turn() && ingest.stalled.is_none() {
-                std::thread::sleep(Duration::from_millis(1));
-            }
-            if ingest.stalled.is_some() {
-                sample();
-            }
-            match w.poll_acks() {
-                Ok(a) => acks.extend(a),
-                // As the actor's client does: reconnect and resend what is unacknowledged.
-                Err(_) => w.reconnect().unwrap(),
-            }
-            assert!(Instant::now() < deadline, "{} batches never acknowledged; acks {acks:?}", w.unacked());
-        }
-        let acked: Vec<u64> = acks
-            .iter()
-            .map(|a| match a {
-                Ack::Stored(s) => s.sequence,
-                Ack::Rejected { sequence, reason } => panic!("batch {sequence} rejected: {reason}"),
-            })
-            .collect();
-        assert_eq!(acked, [1, 2, 3, 4]);
+        // The old connection's port goes; all four are sent again (no ack was read yet).
+        w.reconnect().unwrap();
+        sample(&table); // room for one more batch, which must be batch 3
+        assert_eq!(deliver(&mut ingest, &mut w, &table), [1, 2, 3, 4]);
         // What the writer was told is what the table holds: four batches, none missing.
         let a = &table.actors()["a"];
-        assert_eq!((a.batches, a.rows, a.last_sequence), (4, 400, 4), "acks {acks:?}");
+        assert_eq!((a.batches, a.rows, a.last_sequence), (4, 400, 4));
         assert!(counters.abandoned_batches.load(Ordering::Relaxed) >= 2, "the old connection's 3 and 4 were not stored");
-        drop((ingest, w));
-        for e in std::fs::read_dir("/dev/shm").into_iter().flatten().flatten() {
-            if e.file_name().to_string_lossy().starts_with(&domain) {
-                let _ = std::fs::remove_file(e.path());
-            }
-        }
+    }
+
+    /// A replay restarted under a live writer: batch 2 went to the ingest that stopped and
+    /// was never stored; the writer, not yet aware, sends batch 3 on the same connection,
+    /// which reaches the new ingest. Before, the new ingest stored 3, and the resend of 2
+    /// was acknowledged as a duplicate. Now a connection met half-way is told to resend.
+    #[test]
+    fn a_connection_that_began_with_an_earlier_ingest_is_told_to_resend() {
+        let d = Domain::new("restart");
+        let table = rate_limited_table();
+        let counters = Arc::new(Counters::default());
+        let mut first = Ingest::open(Arc::clone(&table), d.0.clone(), Arc::clone(&counters)).unwrap();
+        let mut w = ShmWriter::connect(&d.0, "b").unwrap();
+        w.send(&batch("b", 1, 100)).unwrap();
+        assert_eq!(deliver(&mut first, &mut w, &table), [1]);
+        w.send(&batch("b", 2, 100)).unwrap();
+        drop(first); // stops before receiving batch 2
+        let mut second = Ingest::open(Arc::clone(&table), d.0.clone(), Arc::clone(&counters)).unwrap();
+        w.send(&batch("b", 3, 100)).unwrap();
+        assert_eq!(deliver(&mut second, &mut w, &table), [2, 3]);
+        let b = &table.actors()["b"];
+        assert_eq!((b.batches, b.rows, b.last_sequence), (3, 300, 3));
     }
 }
