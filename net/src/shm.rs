@@ -464,6 +464,14 @@ impl Conn {
     }
 }
 
+/// Keeps the first of several failures one pass over the window meets: the oldest batch's
+/// answer says why (later ones may only say that an earlier batch was not stored).
+fn keep_first(slot: &mut Option<Broken>, b: Broken) {
+    if slot.is_none() {
+        *slot = Some(b);
+    }
+}
+
 /// An actor's connection to the shared-memory ingest of a replay service on the same host.
 ///
 /// Delivery is at-least-once on the wire and exactly-once in the table: every batch is kept
@@ -720,11 +728,11 @@ impl ShmWriter {
                     if a.writer != nonce {
                         // Another connection's answer (see `Conn::nonce`): says nothing of this
                         // batch. Reconnecting resends it; the table drops it if it was stored.
-                        broken = Some(Broken::Unavailable(format!("protocol error: the answer for batch {} was addressed to another shm writer connection", e.sequence)));
+                        keep_first(&mut broken, Broken::Unavailable(format!("protocol error: the answer for batch {} was addressed to another shm writer connection", e.sequence)));
                         continue;
                     }
                     if a.sequence != e.sequence {
-                        broken = Some(Broken::Unavailable(format!("protocol error: ack for sequence {} answers batch {}", a.sequence, e.sequence)));
+                        keep_first(&mut broken, Broken::Unavailable(format!("protocol error: ack for sequence {} answers batch {}", a.sequence, e.sequence)));
                         continue;
                     }
                     match a.code {
@@ -738,19 +746,19 @@ impl ShmWriter {
                             }))
                         }
                         CODE_INVALID => e.answer = Some(Ack::Rejected { sequence: a.sequence, reason: a.message() }),
-                        CODE_ABORTED => broken = Some(Broken::Aborted(a.message())),
-                        CODE_UNAVAILABLE => broken = Some(Broken::Unavailable(a.message())),
-                        c => broken = Some(Broken::Unavailable(format!("unknown ack code {c}"))),
+                        CODE_ABORTED => keep_first(&mut broken, Broken::Aborted(a.message())),
+                        CODE_UNAVAILABLE => keep_first(&mut broken, Broken::Unavailable(a.message())),
+                        c => keep_first(&mut broken, Broken::Unavailable(format!("unknown ack code {c}"))),
                     }
                 }
                 Ok(None) if !connected => {
                     e.pending = None;
-                    broken = Some(Broken::Unavailable(format!("the ingest dropped batch {} without answering (stopped or died)", e.sequence)));
+                    keep_first(&mut broken, Broken::Unavailable(format!("the ingest dropped batch {} without answering (stopped or died)", e.sequence)));
                 }
                 Ok(None) => {}
                 Err(err) => {
                     e.pending = None;
-                    broken = Some(Broken::Unavailable(format!("cannot receive acks: {err:?}")));
+                    keep_first(&mut broken, Broken::Unavailable(format!("cannot receive acks: {err:?}")));
                 }
             }
         }

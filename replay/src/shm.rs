@@ -43,9 +43,10 @@
 //! second one is refused ([`ShmWriter::poll_acks`](mapless_net::shm::ShmWriter::poll_acks) fails with `ShmError::BadRequest`)
 //! until the first disconnects or dies.
 //! A writer connection is also a stream, as a gRPC `Insert` stream is: once one of its batches
-//! is not stored and must be resent (answered "resend after reconnecting", dropped because its
-//! writer went away while it waited for the rate limiter, or sent to an ingest that stopped:
-//! every request carries its number on its connection), nothing later from that connection is
+//! is not stored and must be resent (refused because another writer owns its actor id, or for
+//! a failed insert, dropped because its writer went away while it waited for the rate limiter,
+//! or sent to an ingest that stopped: every request carries its number on its connection),
+//! nothing later from that connection is
 //! stored, so the table never holds batch *k*+1 without *k* and never takes *k*'s resend for a
 //! duplicate ([`Ingest::handle`]).
 //!
@@ -134,9 +135,10 @@ pub struct ShmStats {
     pub rejected_batches: u64,
     /// Batches refused because another connected writer owns the actor id.
     pub aborted_batches: u64,
-    /// Batches not stored because their writer connection was gone or had ended: its writer
-    /// went away, or one of its batches was not stored and must be resent (the batch itself
-    /// counts); the writer resends them all on its next connection ([`Ingest::handle`]).
+    /// Batches not stored because their writer connection was gone or had ended ([`Ingest::handle`]):
+    /// its writer went away (a batch waiting for the rate limiter counts too), or an earlier
+    /// batch of it was refused (counted as aborted, or as a failed insert) or never arrived
+    /// (the first out-of-turn batch counts too). The writer resends them on its next connection.
     pub abandoned_batches: u64,
     /// Insert attempts that hit `insert_wait_ms` on the rate limiter and were retried.
     pub insert_stalls: u64,
@@ -305,8 +307,9 @@ struct Ingest {
     counters: Arc<Counters>,
     /// actor id → the client port that writes it (one connected writer per actor id).
     owners: HashMap<String, UniqueClientId>,
-    /// Writer connections one of whose batches was answered "resend after reconnecting":
-    /// nothing later from them is stored (see [`Ingest::handle`]). Pruned with `owners`.
+    /// Writer connections one of whose batches was not stored and must be resent (refused
+    /// with ABORTED, a failed insert, or out of turn): nothing later from them is stored (see
+    /// [`Ingest::handle`]). Pruned with `owners`.
     ended: HashSet<UniqueClientId>,
     /// Per writer connection, the [`BatchHeader::request`] its next request must carry.
     /// Pruned with `owners`.
@@ -362,12 +365,17 @@ impl Ingest {
                 idle.snooze();
             }
         }
-        if let Some(s) = self.stalled.take() {
+        if let Some(s) = self.stalled.take()
+            && self.client_connected(s.request.origin())
+        {
             respond(&s.request, WireAck::failed(s.batch.sequence, CODE_UNAVAILABLE, "ingest stopped while the batch waited for the rate limiter; resend after reconnecting"));
         }
-        for r in self.queued.drain(..) {
-            let sequence = r.user_header().sequence();
-            respond(&r, WireAck::failed(sequence, CODE_UNAVAILABLE, "ingest stopped before handling the batch; resend after reconnecting"));
+        for r in std::mem::take(&mut self.queued) {
+            // Not to a gone writer (see `handle`).
+            if self.client_connected(r.origin()) {
+                let sequence = r.user_header().sequence();
+                respond(&r, WireAck::failed(sequence, CODE_UNAVAILABLE, "ingest stopped before handling the batch; resend after reconnecting"));
+            }
         }
         tracing::info!("shared-memory ingest stopped");
     }
@@ -437,7 +445,8 @@ impl Ingest {
     ///
     /// A writer connection is a stream, as a gRPC `Insert` stream is: once one of its batches
     /// is not stored for a reason its writer must retry — its writer went away while the
-    /// batch waited for the rate limiter, it was answered "resend after reconnecting", or it
+    /// batch waited for the rate limiter, it was refused (another writer owns its actor id)
+    /// or answered "resend after reconnecting" (a failed insert), or it
     /// never reached this ingest (the connection's request numbers jump, or begin past 0
     /// because the first ones went to an ingest that has since stopped) — nothing later from
     /// that connection is stored either, and its writer resends them all, in order, on its
