@@ -464,14 +464,6 @@ impl Conn {
     }
 }
 
-/// Keeps the first of several failures one pass over the window meets: the oldest batch's
-/// answer says why (later ones may only say that an earlier batch was not stored).
-fn keep_first(slot: &mut Option<Broken>, b: Broken) {
-    if slot.is_none() {
-        *slot = Some(b);
-    }
-}
-
 /// An actor's connection to the shared-memory ingest of a replay service on the same host.
 ///
 /// Delivery is at-least-once on the wire and exactly-once in the table: every batch is kept
@@ -728,11 +720,11 @@ impl ShmWriter {
                     if a.writer != nonce {
                         // Another connection's answer (see `Conn::nonce`): says nothing of this
                         // batch. Reconnecting resends it; the table drops it if it was stored.
-                        keep_first(&mut broken, Broken::Unavailable(format!("protocol error: the answer for batch {} was addressed to another shm writer connection", e.sequence)));
+                        broken.get_or_insert(Broken::Unavailable(format!("protocol error: the answer for batch {} was addressed to another shm writer connection", e.sequence)));
                         continue;
                     }
                     if a.sequence != e.sequence {
-                        keep_first(&mut broken, Broken::Unavailable(format!("protocol error: ack for sequence {} answers batch {}", a.sequence, e.sequence)));
+                        broken.get_or_insert(Broken::Unavailable(format!("protocol error: ack for sequence {} answers batch {}", a.sequence, e.sequence)));
                         continue;
                     }
                     match a.code {
@@ -746,19 +738,25 @@ impl ShmWriter {
                             }))
                         }
                         CODE_INVALID => e.answer = Some(Ack::Rejected { sequence: a.sequence, reason: a.message() }),
-                        CODE_ABORTED => keep_first(&mut broken, Broken::Aborted(a.message())),
-                        CODE_UNAVAILABLE => keep_first(&mut broken, Broken::Unavailable(a.message())),
-                        c => keep_first(&mut broken, Broken::Unavailable(format!("unknown ack code {c}"))),
+                        CODE_ABORTED => {
+                            broken.get_or_insert(Broken::Aborted(a.message()));
+                        }
+                        CODE_UNAVAILABLE => {
+                            broken.get_or_insert(Broken::Unavailable(a.message()));
+                        }
+                        c => {
+                            broken.get_or_insert(Broken::Unavailable(format!("unknown ack code {c}")));
+                        }
                     }
                 }
                 Ok(None) if !connected => {
                     e.pending = None;
-                    keep_first(&mut broken, Broken::Unavailable(format!("the ingest dropped batch {} without answering (stopped or died)", e.sequence)));
+                    broken.get_or_insert(Broken::Unavailable(format!("the ingest dropped batch {} without answering (stopped or died)", e.sequence)));
                 }
                 Ok(None) => {}
                 Err(err) => {
                     e.pending = None;
-                    keep_first(&mut broken, Broken::Unavailable(format!("cannot receive acks: {err:?}")));
+                    broken.get_or_insert(Broken::Unavailable(format!("cannot receive acks: {err:?}")));
                 }
             }
         }

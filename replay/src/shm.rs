@@ -46,9 +46,8 @@
 //! is not stored and must be resent (refused because another writer owns its actor id, or for
 //! a failed insert, dropped because its writer went away while it waited for the rate limiter,
 //! or sent to an ingest that stopped: every request carries its number on its connection),
-//! nothing later from that connection is
-//! stored, so the table never holds batch *k*+1 without *k* and never takes *k*'s resend for a
-//! duplicate ([`Ingest::handle`]).
+//! nothing later from that connection is stored, so the table never holds batch *k*+1 without
+//! *k* and never takes *k*'s resend for a duplicate ([`Ingest::handle`]).
 //!
 //! Every answer echoes the nonce of its request's header (one per writer connection), and a
 //! writer takes only answers that carry its own. iceoryx2 routes a response by the server's
