@@ -705,6 +705,8 @@ impl ShmWriter {
     /// Receives the answers that arrived and moves answered batches out of the window into
     /// `ready`, in window order (see [`hand_over_answered`]).
     fn collect(&mut self) {
+        // The first failure of the pass (`get_or_insert` below): the oldest batch's answer says
+        // why; later ones may only say that an earlier batch was not stored.
         let mut broken = None;
         let nonce = self.conn.as_ref().map_or(0, |c| c.nonce);
         for e in self.window.iter_mut() {
