@@ -750,6 +750,15 @@ mod tests {
         Arc::new(Table::new(TableConfig { capacity: 10_000, obs_dim: 3, rate_limiter: limiter, max_batch_rows: 100, max_sample_rows: 100, ..TableConfig::default() }, 1).unwrap())
     }
 
+    /// A domain of this test's own, the rate-limited table, counters, and an ingest over them.
+    fn rate_limited_ingest(tag: &str) -> (Domain, Arc<Table>, Arc<Counters>, Ingest) {
+        let d = Domain::new(tag);
+        let table = rate_limited_table();
+        let counters = Arc::new(Counters::default());
+        let ingest = Ingest::open(Arc::clone(&table), d.0.clone(), Arc::clone(&counters)).unwrap();
+        (d, table, counters, ingest)
+    }
+
     fn sample(table: &Table) {
         table.sample(100, None, Some(Instant::now() + Duration::from_secs(5))).unwrap();
     }
@@ -786,10 +795,7 @@ mod tests {
     /// "duplicate", so the writer counted 3 delivered that no sample could ever draw.
     #[test]
     fn a_writer_that_reconnects_behind_the_rate_limiter_has_every_batch_stored_in_order() {
-        let d = Domain::new("stall");
-        let table = rate_limited_table();
-        let counters = Arc::new(Counters::default());
-        let mut ingest = Ingest::open(Arc::clone(&table), d.0.clone(), Arc::clone(&counters)).unwrap();
+        let (d, table, counters, mut ingest) = rate_limited_ingest("stall");
         let mut w = ShmWriter::connect(&d.0, "a").unwrap();
         for seq in 1..=4 {
             w.send(&batch("a", seq, 100)).unwrap();
@@ -816,10 +822,7 @@ mod tests {
     /// was acknowledged as a duplicate. Now a connection met half-way is told to resend.
     #[test]
     fn a_connection_that_began_with_an_earlier_ingest_is_told_to_resend() {
-        let d = Domain::new("restart");
-        let table = rate_limited_table();
-        let counters = Arc::new(Counters::default());
-        let mut first = Ingest::open(Arc::clone(&table), d.0.clone(), Arc::clone(&counters)).unwrap();
+        let (d, table, counters, mut first) = rate_limited_ingest("restart");
         let mut w = ShmWriter::connect(&d.0, "b").unwrap();
         w.send(&batch("b", 1, 100)).unwrap();
         assert_eq!(deliver(&mut first, &mut w, &table), [1]);

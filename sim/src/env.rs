@@ -170,6 +170,8 @@ pub struct Env {
     /// Steps since the pose last entered a cell the episode had not visited.
     stale_steps: u32,
     steps: u32,
+    /// This episode's limit: `episode.max_steps`, or `episode.long_max_steps` for a long one.
+    max_steps: u32,
     return_: f64,
     episode_id: u64,
     episodes_started: u64,
@@ -190,6 +192,7 @@ impl Env {
     pub fn new(world: Arc<World>, seed: u64) -> Self {
         let n = world.cfg.sensor.beams;
         let tracker = ExplorationTracker::new(world.map.bounds, &world.cfg.exploration);
+        let max_steps = world.cfg.episode.max_steps;
         Env {
             sensor: RangeSensor::new(&world.cfg.sensor),
             rng: Pcg64Mcg::seed_from_u64(splitmix64(seed)),
@@ -202,6 +205,7 @@ impl Env {
             prev_reward: 0.0,
             stale_steps: 0,
             steps: 0,
+            max_steps,
             return_: 0.0,
             episode_id: 0,
             episodes_started: 0,
@@ -256,8 +260,9 @@ impl Env {
         let w = Arc::clone(&self.world);
         let b = w.map.bounds;
         let ep = &w.cfg.episode;
-        // Drawn only when asked for, so that share 0 leaves every seed's starts unchanged.
+        // Drawn only when asked for, so that shares of 0 leave every seed's starts unchanged.
         let facing = (ep.hard_start_share > 0.0 && self.rng.random::<f64>() < ep.hard_start_share).then_some(ep.hard_start_within_m);
+        let long = ep.long_share > 0.0 && self.rng.random::<f64>() < ep.long_share;
         for _ in 0..ep.start_attempts {
             let x = self.rng.random_range(b.min_x..b.max_x);
             let y = self.rng.random_range(b.min_y..b.max_y);
@@ -265,6 +270,9 @@ impl Env {
             let pose = Pose { x_m: x, y_m: y, heading_rad: heading };
             if w.is_valid_start(x, y, ep.start_clearance_m) && facing.is_none_or(|d| w.faces_surface_within(pose, d)) && (!ep.start_escapable || w.can_circle_from(pose)) {
                 self.reset_to(pose, obs);
+                if long {
+                    self.max_steps = ep.long_max_steps;
+                }
                 return Ok(());
             }
         }
@@ -275,6 +283,7 @@ impl Env {
     pub fn reset_to(&mut self, pose: Pose, obs: &mut [f32]) {
         self.pose = pose;
         self.steps = 0;
+        self.max_steps = self.world.cfg.episode.max_steps;
         self.return_ = 0.0;
         self.episodes_started += 1;
         self.episode_id = self.episodes_started;
@@ -337,7 +346,7 @@ impl Env {
         self.prev_reward = reward as f32;
         self.write_obs(next_obs);
         let terminal = collided;
-        let truncated = !terminal && self.steps >= w.cfg.episode.max_steps;
+        let truncated = !terminal && self.steps >= self.max_steps;
         Ok(StepOutcome { reward: reward as f32, terminal, truncated })
     }
 

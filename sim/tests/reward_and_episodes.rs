@@ -327,6 +327,43 @@ fn reaching_max_steps_is_truncated_not_terminal() {
     }
 }
 
+/// Long episodes (`episode.long_share`): that share of `reset`'s episodes runs to
+/// `long_max_steps`, the rest to `max_steps`; a start placed by `reset_to` keeps `max_steps`.
+#[test]
+fn long_episodes_run_to_their_limit_in_their_share() {
+    let limit_of = |env: &mut Env, obs: &mut [f32]| {
+        // Standing still (v = 0) never collides: the episode ends on its limit.
+        (1..=100u32).find(|_| env.step([-1.0, 0.0], obs).unwrap().truncated).unwrap_or(0)
+    };
+    let limits = |share: f64, n: usize| {
+        let mut cfg = noiseless();
+        (cfg.episode.max_steps, cfg.episode.long_max_steps, cfg.episode.long_share) = (5, 12, share);
+        let w = world("box", cfg);
+        let mut env = Env::new(Arc::clone(&w), 9);
+        let mut obs = vec![0.0; w.obs_dim()];
+        let mut seen = Vec::new();
+        for _ in 0..n {
+            env.reset(&mut obs).unwrap();
+            seen.push((env.pose(), limit_of(&mut env, &mut obs)));
+        }
+        env.reset_to(Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
+        (seen, limit_of(&mut env, &mut obs))
+    };
+    let (none, placed) = limits(0.0, 400);
+    assert!(none.iter().all(|&(_, l)| l == 5) && placed == 5, "share 0: every episode runs to max_steps");
+    let (all, placed) = limits(1.0, 400);
+    assert!(all.iter().all(|&(_, l)| l == 12) && placed == 5, "share 1: every reset's episode is long, reset_to's is not");
+    let (some, _) = limits(0.3, 2000);
+    let long = some.iter().filter(|&&(_, l)| l == 12).count() as f64 / 2000.0;
+    assert!(some.iter().all(|&(_, l)| l == 5 || l == 12));
+    assert!((long - 0.3).abs() < 4.0 * (0.3f64 * 0.7 / 2000.0).sqrt(), "long share {long}");
+    let mut bad = noiseless();
+    bad.episode.long_share = 1.5;
+    assert!(bad.validate().unwrap_err().to_string().contains("episode.long_share"));
+    (bad.episode.long_share, bad.episode.long_max_steps) = (0.5, 0);
+    assert!(bad.validate().unwrap_err().to_string().contains("episode.long_max_steps"));
+}
+
 #[test]
 fn collision_on_the_last_step_is_terminal_only() {
     let mut cfg = noiseless();

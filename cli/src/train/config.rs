@@ -158,6 +158,13 @@ pub struct ActorsSettings {
     /// training did not make its policies carry better to env3 over five seeds
     /// (docs/simulator.md, "Hard starts")].
     pub hard_start_share: Option<f64>,
+    /// Share of the training episodes that run to `env.episode.long_max_steps` (3,000) in place
+    /// of `env.episode.max_steps`, in place of `env.episode.long_share` (0, which every
+    /// evaluation keeps); none: the same as evaluations [ours: none in every preset; a policy
+    /// trained on 1,000-step episodes and evaluated on 3,000 meets states no training episode
+    /// reached, and all training episodes at 3,000 steps cost the families
+    /// (docs/experiments.md, "A share of long training episodes")].
+    pub long_share: Option<f64>,
     /// Share of the training transitions the actors store as their mirror image: beams read
     /// right to left, ω_{t−1} and the turn a₂ negated, the reward as it was — a transition the
     /// car makes in the mirror image of its world (`EnvConfig::mirror_obs`; tested against that
@@ -172,7 +179,7 @@ pub struct ActorsSettings {
 
 impl Default for ActorsSettings {
     fn default() -> Self {
-        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, start_clearance_m: None, hard_start_share: None, mirror_share: 0.0 }
+        ActorsSettings { count: 2, vehicles: 4, batch_rows: 64, warmup_steps: 2_500, start_clearance_m: None, hard_start_share: None, long_share: None, mirror_share: 0.0 }
     }
 }
 
@@ -287,8 +294,8 @@ pub(crate) fn default_table() -> TableConfig {
 
 impl TrainConfig {
     /// The simulator settings the actors train with: `env`, with the training starts'
-    /// clearance (`actors.start_clearance_m`) and share of hard starts
-    /// (`actors.hard_start_share`) where they are set.
+    /// clearance (`actors.start_clearance_m`), share of hard starts (`actors.hard_start_share`)
+    /// and share of long episodes (`actors.long_share`) where they are set.
     pub fn actor_env(&self) -> EnvConfig {
         let mut env = self.env.clone();
         if let Some(c) = self.actors.start_clearance_m {
@@ -296,6 +303,9 @@ impl TrainConfig {
         }
         if let Some(s) = self.actors.hard_start_share {
             env.episode.hard_start_share = s;
+        }
+        if let Some(s) = self.actors.long_share {
+            env.episode.long_share = s;
         }
         env
     }
@@ -344,6 +354,14 @@ impl TrainConfig {
             && !(0.0..=1.0).contains(&s)
         {
             bail!("actors.hard_start_share must be a share in [0, 1], not {s}");
+        }
+        if let Some(s) = self.actors.long_share
+            && !(0.0..=1.0).contains(&s)
+        {
+            bail!("actors.long_share must be a share in [0, 1], not {s}");
+        }
+        if self.actors.long_share.is_some_and(|s| s > 0.0) && self.stop.average_return.is_some() {
+            bail!("actors.long_share with stop.average_return: a long episode's return is not comparable with the goal's (steps count up to env.episode.max_steps, returns cannot); leave one out");
         }
         if !(0.0..=1.0).contains(&self.actors.mirror_share) {
             bail!("actors.mirror_share must be a share in [0, 1], not {}", self.actors.mirror_share);
@@ -979,6 +997,20 @@ mod tests {
             let err = load_config(&train_args("env1-sac", &[&format!("actors.start_clearance_m={bad}")])).unwrap_err();
             assert!(format!("{err:#}").contains("actors.start_clearance_m"), "{bad}: {err:#}");
         }
+    }
+
+    #[test]
+    fn long_episodes_are_for_training_only() {
+        let (cfg, _, _) = load_config(&train_args("explore-sac", &["actors.long_share=0.25"])).unwrap();
+        assert_eq!(cfg.actor_env().episode.long_share, 0.25);
+        assert_eq!(cfg.env.episode.long_share, 0.0);
+        assert_eq!((cfg.actor_env().episode.max_steps, cfg.actor_env().episode.long_max_steps), (1000, 3000));
+        for bad in ["-0.1", "1.5", ".nan"] {
+            let err = load_config(&train_args("explore-sac", &[&format!("actors.long_share={bad}")])).unwrap_err();
+            assert!(format!("{err:#}").contains("actors.long_share"), "{bad}: {err:#}");
+        }
+        let err = load_config(&train_args("env1-sac", &["actors.long_share=0.25"])).unwrap_err();
+        assert!(format!("{err:#}").contains("stop.average_return"), "{err:#}");
     }
 
     #[test]

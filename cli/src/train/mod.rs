@@ -77,7 +77,7 @@ pub fn train(args: &TrainArgs, log_json: bool) -> Result<()> {
 
     let mut episodes = Episodes::open(&run.dir)?;
     let mut status = Status::new(episodes.offset_s, cfg.stop.minutes);
-    let mut rules = StopRules::new(&cfg.stop, episodes.before);
+    let mut rules = StopRules::new(&cfg.stop, episodes.before, cfg.env.episode.max_steps);
     let mut evals = Evaluations::new(&cfg, &run.dir);
     let mut curves = Curves::new(&run.dir, episodes.rows.len());
     let mut progress = Progress::new(status.elapsed());

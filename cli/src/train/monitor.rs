@@ -124,7 +124,7 @@ pub fn monitor(args: &MonitorArgs) -> Result<ExitCode> {
 
     let mut episodes = Episodes::open(&run.dir)?;
     let mut status = Status::new(episodes.offset_s, None);
-    let mut rules = StopRules::new(&train.stop, episodes.before);
+    let mut rules = StopRules::new(&train.stop, episodes.before, train.env.episode.max_steps);
     let mut evals = Evaluations::new(&train, &run.dir);
     let mut curves = Curves::new(&run.dir, episodes.rows.len());
     let mut policy = PolicyCopy::new(&cfg.policy_file, &run.dir.join("policy.safetensors"));

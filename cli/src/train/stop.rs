@@ -9,6 +9,7 @@ use super::config::StopCriteria;
 use super::episodes::{EpisodeRow, averages};
 use super::status::Milestone;
 use crate::eval::EvalSummary;
+use mapless_sim::stats::trailing_mean;
 
 /// How `Summary::stopped_because` begins for a run that Ctrl-C or SIGTERM stopped.
 pub const INTERRUPTED: &str = "interrupted";
@@ -33,15 +34,19 @@ impl Interrupt {
     }
 }
 
-/// Have the stop criteria on moving averages been met?
-pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria) -> bool {
+/// Have the stop criteria on moving averages been met? Each episode's steps count up to
+/// `steps_cap`, the training episodes' limit (`env.episode.max_steps`): a long training episode
+/// (`actors.long_share`) counts as one that ran its limit once it has, so that the goal keeps
+/// its meaning (episodes run their limit without a collision) whatever the share of long ones.
+pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria, steps_cap: u32) -> bool {
     if stop.average_return.is_none() && stop.average_steps.is_none() {
         return false;
     }
     if rows.len() < stop.window || stop.min_episodes.is_some_and(|m| (rows.len() as u64) < m) {
         return false;
     }
-    let (r, s) = averages(rows, stop.window);
+    let (r, _) = averages(rows, stop.window);
+    let s = trailing_mean(rows.iter().map(|e| f64::from(e.steps.min(steps_cap))), stop.window);
     stop.average_return.is_none_or(|g| r >= g) && stop.average_steps.is_none_or(|g| s >= g)
 }
 
@@ -87,6 +92,8 @@ pub(crate) struct StopRules {
     /// Episodes of earlier sessions: the averages are judged once this session has added one
     /// (a resumed run that had met them does not stop at once on the same episodes).
     before: usize,
+    /// The training episodes' limit, up to which an episode's steps count ([`averages_met`]).
+    steps_cap: u32,
     /// Why the run stops, once a rule has said so.
     reason: Option<String>,
     met_at: Option<Milestone>,
@@ -94,8 +101,8 @@ pub(crate) struct StopRules {
 }
 
 impl StopRules {
-    pub(crate) fn new(criteria: &StopCriteria, episodes_before: usize) -> StopRules {
-        StopRules { criteria: criteria.clone(), before: episodes_before, reason: None, met_at: None, criteria_evaluation: None }
+    pub(crate) fn new(criteria: &StopCriteria, episodes_before: usize, steps_cap: u32) -> StopRules {
+        StopRules { criteria: criteria.clone(), before: episodes_before, steps_cap, reason: None, met_at: None, criteria_evaluation: None }
     }
 
     /// `return ≥ G, steps ≥ H`: the goals of the moving averages.
@@ -108,7 +115,7 @@ impl StopRules {
     /// evaluation goal, their reaching the goal stops the run here; with one, the caller
     /// evaluates the newest policy and hands the result to [`StopRules::judge`].
     pub(crate) fn averages(&mut self, rows: &[EpisodeRow], now: impl FnOnce() -> Milestone) -> Averages {
-        if self.met_at.is_some() || rows.len() <= self.before || !averages_met(rows, &self.criteria) {
+        if self.met_at.is_some() || rows.len() <= self.before || !averages_met(rows, &self.criteria, self.steps_cap) {
             return Averages::Short;
         }
         if self.criteria.eval_goal().is_some() {
@@ -214,25 +221,38 @@ mod tests {
     fn stop_on_moving_averages_needs_a_full_window_and_both_goals() {
         let stop = StopCriteria { window: 3, average_return: Some(300.0), average_steps: Some(990.0), ..StopCriteria::default() };
         let mut rows = vec![row(1, 400.0, 1000), row(2, 400.0, 1000)];
-        assert!(!averages_met(&rows, &stop), "fewer episodes than the window");
+        assert!(!averages_met(&rows, &stop, 1000), "fewer episodes than the window");
         rows.push(row(3, 400.0, 1000));
-        assert!(averages_met(&rows, &stop));
+        assert!(averages_met(&rows, &stop, 1000));
         rows.push(row(4, 400.0, 900)); // steps average (1000+1000+900)/3 = 966.7 < 990
-        assert!(!averages_met(&rows, &stop));
+        assert!(!averages_met(&rows, &stop, 1000));
         let only_return = StopCriteria { average_steps: None, ..stop.clone() };
-        assert!(averages_met(&rows, &only_return));
+        assert!(averages_met(&rows, &only_return, 1000));
         let none = StopCriteria { average_return: None, average_steps: None, ..stop };
-        assert!(!averages_met(&rows, &none), "no goals: never stops on averages");
+        assert!(!averages_met(&rows, &none, 1000), "no goals: never stops on averages");
+    }
+
+    /// Long training episodes (`actors.long_share`) count up to the ordinary limit: a window
+    /// of long episodes that collided after it meets the steps goal, one whose long episodes
+    /// make up for short ones does not.
+    #[test]
+    fn steps_count_up_to_the_training_episodes_limit() {
+        let stop = StopCriteria { window: 3, average_steps: Some(990.0), ..StopCriteria::default() };
+        let rows = [row(1, 400.0, 3000), row(2, 400.0, 1700), row(3, 400.0, 1000)];
+        assert!(averages_met(&rows, &stop, 1000));
+        let rows = [row(1, 400.0, 3000), row(2, 400.0, 3000), row(3, 400.0, 400)];
+        assert!(averages_met(&rows, &stop, 3000), "uncapped: (3000 + 3000 + 400) / 3 ≥ 990");
+        assert!(!averages_met(&rows, &stop, 1000), "(1000 + 1000 + 400) / 3 = 800 < 990");
     }
 
     #[test]
     fn no_average_is_judged_before_the_episode_floor() {
         let stop = StopCriteria { window: 2, average_return: Some(300.0), min_episodes: Some(4), ..StopCriteria::default() };
         let mut rows = vec![row(1, 400.0, 1000), row(2, 400.0, 1000), row(3, 400.0, 1000)];
-        assert!(!averages_met(&rows, &stop), "3 episodes, the floor is 4");
+        assert!(!averages_met(&rows, &stop, 1000), "3 episodes, the floor is 4");
         rows.push(row(4, 400.0, 1000));
-        assert!(averages_met(&rows, &stop));
-        let mut rules = StopRules::new(&stop, 0);
+        assert!(averages_met(&rows, &stop, 1000));
+        let mut rules = StopRules::new(&stop, 0, 1000);
         assert_eq!(rules.averages(&rows[..3], || at(3)), Averages::Short);
         assert_eq!(rules.averages(&rows, || at(4)), Averages::Met);
     }
@@ -240,7 +260,7 @@ mod tests {
     #[test]
     fn the_averages_stop_the_run_exactly_when_the_window_fills_above_the_goal() {
         let criteria = StopCriteria { window: 4, average_return: Some(300.0), average_steps: Some(990.0), ..StopCriteria::default() };
-        let mut rules = StopRules::new(&criteria, 0);
+        let mut rules = StopRules::new(&criteria, 0, 1000);
         let mut rows = Vec::new();
         for k in 1..=3 {
             rows.push(row(k, 400.0, 1000));
@@ -257,7 +277,7 @@ mod tests {
         assert!(o.criteria_evaluation.is_none());
 
         // A window whose last value pulls the average under the goal does not stop the run.
-        let mut rules = StopRules::new(&criteria, 0);
+        let mut rules = StopRules::new(&criteria, 0, 1000);
         let rows = [row(1, 400.0, 1000), row(2, 400.0, 1000), row(3, 400.0, 1000), row(4, -200.0, 1000)];
         assert_eq!(rules.averages(&rows, || at(4)), Averages::Short, "return average 250 < 300");
         assert!(!rules.stops(false, 4, 4.0));
@@ -267,7 +287,7 @@ mod tests {
     fn a_resumed_run_judges_the_averages_only_after_an_episode_of_its_own() {
         let criteria = StopCriteria { window: 2, average_return: Some(300.0), ..StopCriteria::default() };
         let mut rows = vec![row(1, 400.0, 1000), row(2, 400.0, 1000)];
-        let mut rules = StopRules::new(&criteria, 2);
+        let mut rules = StopRules::new(&criteria, 2, 1000);
         assert_eq!(rules.averages(&rows, || at(2)), Averages::Short, "the earlier session's episodes only");
         rows.push(row(3, 400.0, 1000));
         assert_eq!(rules.averages(&rows, || at(3)), Averages::Met);
@@ -277,7 +297,7 @@ mod tests {
     fn with_an_evaluation_goal_the_averages_ask_for_an_evaluation_that_must_meet_it() {
         let criteria = StopCriteria { window: 2, average_return: Some(300.0), eval_eqs: Some(91.0), eval_ees: Some(2.63), ..StopCriteria::default() };
         let rows = [row(1, 400.0, 1000), row(2, 400.0, 1000)];
-        let mut rules = StopRules::new(&criteria, 0);
+        let mut rules = StopRules::new(&criteria, 0, 1000);
         assert_eq!(rules.averages(&rows, || at(2)), Averages::Evaluate);
         assert!(!rules.stops(false, 2, 2.0), "the averages alone do not stop it");
         // Short of the goal: EES, then a collision.
@@ -302,14 +322,14 @@ mod tests {
     #[test]
     fn an_evaluation_that_ends_after_the_stop_still_counts() {
         let criteria = StopCriteria { window: 1, average_return: Some(300.0), eval_eqs: Some(91.0), minutes: Some(5.0), ..StopCriteria::default() };
-        let mut rules = StopRules::new(&criteria, 0);
+        let mut rules = StopRules::new(&criteria, 0, 1000);
         assert!(rules.stops(false, 1, 300.0));
         rules.judge_after_stop(at(1), evaluation(3, 95.0, 0.0, 0));
         let o = rules.outcome();
         assert!(o.stopped_because.starts_with("5 minutes; meanwhile order-1 moving averages reached the goal (return ≥ 300) and an evaluation of policy v3"), "{}", o.stopped_because);
         assert_eq!(o.criteria_met_at, Some(at(1)));
         // One short of the goal leaves the reason alone.
-        let mut rules = StopRules::new(&criteria, 0);
+        let mut rules = StopRules::new(&criteria, 0, 1000);
         assert!(rules.stops(true, 1, 1.0));
         rules.judge_after_stop(at(1), evaluation(3, 90.0, 0.0, 0));
         assert_eq!(rules.outcome().stopped_because, "interrupted (Ctrl-C or SIGTERM)");
@@ -323,7 +343,7 @@ mod tests {
         assert_eq!(limit_reached(&c, 3, 30.0).as_deref(), Some("0.5 minutes"));
         assert_eq!(limit_reached(&c, 10, 30.0).as_deref(), Some("10 episodes"), "episodes are looked at first");
         assert_eq!(limit_reached(&StopCriteria::default(), u64::MAX, 1e12), None, "no limits: never");
-        let mut rules = StopRules::new(&c, 0);
+        let mut rules = StopRules::new(&c, 0, 1000);
         assert!(!rules.stops(false, 9, 1.0));
         assert!(rules.stops(false, 10, 1.0));
         assert_eq!(rules.stopped_because(), "10 episodes");
@@ -332,10 +352,10 @@ mod tests {
     #[test]
     fn a_signal_stops_the_run_and_only_met_criteria_name_another_reason() {
         let c = StopCriteria { episodes: Some(1), window: 1, average_return: Some(0.0), ..StopCriteria::default() };
-        let mut rules = StopRules::new(&c, 0);
+        let mut rules = StopRules::new(&c, 0, 1000);
         assert!(rules.stops(true, 5, 1.0));
         assert!(rules.stopped_because().starts_with(INTERRUPTED), "a limit reached too does not name itself");
-        let mut rules = StopRules::new(&c, 0);
+        let mut rules = StopRules::new(&c, 0, 1000);
         assert_eq!(rules.averages(&[row(1, 1.0, 10)], || at(1)), Averages::Met);
         assert!(rules.stops(true, 1, 1.0));
         assert!(rules.stopped_because().starts_with("order-1 moving averages"), "the criteria met in the same look win");
@@ -350,7 +370,7 @@ mod tests {
         cfg.stop.average_return = None;
         cfg.stop.average_steps = None;
         cfg.stop.window = 1;
-        assert!(!averages_met(&[row(1, 500.0, 1000)], &cfg.stop));
+        assert!(!averages_met(&[row(1, 500.0, 1000)], &cfg.stop, 1000));
         cfg.resolve().unwrap();
         for (p, eqs, ees) in [("env1-td3", 113.0, 2.40), ("env1-ddpg", 81.0, 1.82)] {
             let cfg = preset_config(p).unwrap();
