@@ -419,7 +419,7 @@ impl EnvConfig {
             (self.episode.start_clearance_m >= 0.0, "episode.start_clearance_m must be ≥ 0"),
             ((0.0..=1.0).contains(&self.episode.hard_start_share), "episode.hard_start_share must be in [0, 1]"),
             ((0.0..=1.0).contains(&self.episode.long_share), "episode.long_share must be in [0, 1]"),
-            (self.episode.long_max_steps >= 1, "episode.long_max_steps must be ≥ 1"),
+            (self.episode.long_share == 0.0 || self.episode.long_max_steps > self.episode.max_steps, "episode.long_max_steps must be > max_steps where episode.long_share > 0"),
             (self.episode.hard_start_within_m > 0.0 && self.episode.hard_start_within_m.is_finite(), "episode.hard_start_within_m must be a finite number > 0 (metres)"),
             (self.exploration.cell_area_m2 > 0.0, "exploration.cell_area_m2 must be > 0"),
             (self.exploration.ring_width_m > 0.0, "exploration.ring_width_m must be > 0"),

@@ -344,24 +344,26 @@ fn long_episodes_run_to_their_limit_in_their_share() {
         let mut seen = Vec::new();
         for _ in 0..n {
             env.reset(&mut obs).unwrap();
-            seen.push((env.pose(), limit_of(&mut env, &mut obs)));
+            seen.push(limit_of(&mut env, &mut obs));
         }
         env.reset_to(Pose { x_m: 0.0, y_m: 0.0, heading_rad: 0.0 }, &mut obs);
         (seen, limit_of(&mut env, &mut obs))
     };
     let (none, placed) = limits(0.0, 400);
-    assert!(none.iter().all(|&(_, l)| l == 5) && placed == 5, "share 0: every episode runs to max_steps");
+    assert!(none.iter().all(|&l| l == 5) && placed == 5, "share 0: every episode runs to max_steps");
     let (all, placed) = limits(1.0, 400);
-    assert!(all.iter().all(|&(_, l)| l == 12) && placed == 5, "share 1: every reset's episode is long, reset_to's is not");
+    assert!(all.iter().all(|&l| l == 12) && placed == 5, "share 1: every reset's episode is long, reset_to's is not");
     let (some, _) = limits(0.3, 2000);
-    let long = some.iter().filter(|&&(_, l)| l == 12).count() as f64 / 2000.0;
-    assert!(some.iter().all(|&(_, l)| l == 5 || l == 12));
+    let long = some.iter().filter(|&&l| l == 12).count() as f64 / 2000.0;
+    assert!(some.iter().all(|&l| l == 5 || l == 12));
     assert!((long - 0.3).abs() < 4.0 * (0.3f64 * 0.7 / 2000.0).sqrt(), "long share {long}");
     let mut bad = noiseless();
     bad.episode.long_share = 1.5;
     assert!(bad.validate().unwrap_err().to_string().contains("episode.long_share"));
-    (bad.episode.long_share, bad.episode.long_max_steps) = (0.5, 0);
+    (bad.episode.long_share, bad.episode.long_max_steps) = (0.5, bad.episode.max_steps);
     assert!(bad.validate().unwrap_err().to_string().contains("episode.long_max_steps"));
+    bad.episode.long_share = 0.0;
+    bad.validate().expect("without long episodes their limit is not looked at");
 }
 
 #[test]

@@ -360,6 +360,13 @@ impl TrainConfig {
         {
             bail!("actors.long_share must be a share in [0, 1], not {s}");
         }
+        if self.env.episode.long_share != 0.0 {
+            bail!("env.episode.long_share is {}, but every evaluation takes env.episode: training's long episodes are actors.long_share, set that", self.env.episode.long_share);
+        }
+        let ep = &self.env.episode;
+        if self.actors.long_share.is_some_and(|s| s > 0.0) && ep.long_max_steps <= ep.max_steps {
+            bail!("actors.long_share: env.episode.long_max_steps ({}) must be > env.episode.max_steps ({}), or no episode is longer", ep.long_max_steps, ep.max_steps);
+        }
         if self.actors.long_share.is_some_and(|s| s > 0.0) && self.stop.average_return.is_some() {
             bail!("actors.long_share with stop.average_return: a long episode's return is not comparable with the goal's (steps count up to env.episode.max_steps, returns cannot); leave one out");
         }
@@ -1011,6 +1018,10 @@ mod tests {
         }
         let err = load_config(&train_args("env1-sac", &["actors.long_share=0.25"])).unwrap_err();
         assert!(format!("{err:#}").contains("stop.average_return"), "{err:#}");
+        let err = load_config(&train_args("explore-sac", &["env.episode.long_share=0.25"])).unwrap_err();
+        assert!(format!("{err:#}").contains("actors.long_share"), "{err:#}");
+        let err = load_config(&train_args("explore-sac", &["actors.long_share=0.25", "max_steps=3000"])).unwrap_err();
+        assert!(format!("{err:#}").contains("long_max_steps"), "{err:#}");
     }
 
     #[test]
