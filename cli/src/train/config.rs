@@ -101,6 +101,16 @@ pub struct StopCriteria {
     /// kept its last policy that way was collision-free in 223 of 300 held-out episodes, its best
     /// one in 258 (docs/experiments.md, "Choosing on more episodes")].
     pub choose_episodes: Option<u32>,
+    /// With `keep_best`: the run's policy at the end, unless its criteria were met or the best
+    /// policy evaluated while training is clearly safer, is the element-wise mean of the weights
+    /// of the newest this many policies in `snapshots/` (those the criterion's evaluations and
+    /// `choose_every_minutes`' judged), in place of the learner's last; the mean stands in the
+    /// end's evaluations where the last would (an `average` line of `evals.csv`); null: the
+    /// learner's last [ours, as stochastic weight averaging (Izmailov et al. 2018; in deep RL,
+    /// Nikishin et al. 2018): over one explore-sac run's last 16 policies the held-out families
+    /// ranged 94–132 of 150 collision-free, the mean of those 16 was at 134; docs/experiments.md,
+    /// "The mean of a run's last policies"].
+    pub average_last: Option<u32>,
 }
 
 impl Default for StopCriteria {
@@ -121,6 +131,7 @@ impl Default for StopCriteria {
             choose_every_minutes: None,
             choose_max_steps: None,
             choose_episodes: None,
+            average_last: None,
         }
     }
 }
@@ -363,11 +374,11 @@ impl TrainConfig {
         if self.env.episode.long_share != 0.0 {
             bail!("env.episode.long_share is {}, but every evaluation takes env.episode: training's long episodes are actors.long_share, set that", self.env.episode.long_share);
         }
-        let ep = &self.env.episode;
-        if self.actors.long_share.is_some_and(|s| s > 0.0) && ep.long_max_steps <= ep.max_steps {
+        let (ep, long) = (&self.env.episode, self.actors.long_share.is_some_and(|s| s > 0.0));
+        if long && ep.long_max_steps <= ep.max_steps {
             bail!("actors.long_share: env.episode.long_max_steps ({}) must be > env.episode.max_steps ({}), or no episode is longer", ep.long_max_steps, ep.max_steps);
         }
-        if self.actors.long_share.is_some_and(|s| s > 0.0) && self.stop.average_return.is_some() {
+        if long && self.stop.average_return.is_some() {
             bail!("actors.long_share with stop.average_return: a long episode's return is not comparable with the goal's (steps count up to env.episode.max_steps, returns cannot); leave one out");
         }
         if !(0.0..=1.0).contains(&self.actors.mirror_share) {
@@ -399,8 +410,16 @@ impl TrainConfig {
         if s.choose_episodes == Some(0) {
             bail!("stop.choose_episodes must be >= 1 (or null: stop.eval_episodes)");
         }
+        if s.average_last.is_some_and(|k| k < 2) {
+            bail!("stop.average_last must be >= 2 policies (or null: the learner's last)");
+        }
         for (name, set) in
-            [("stop.choose_every_minutes", s.choose_every_minutes.is_some()), ("stop.choose_max_steps", s.choose_max_steps.is_some()), ("stop.choose_episodes", s.choose_episodes.is_some())]
+            [
+                ("stop.choose_every_minutes", s.choose_every_minutes.is_some()),
+                ("stop.choose_max_steps", s.choose_max_steps.is_some()),
+                ("stop.choose_episodes", s.choose_episodes.is_some()),
+                ("stop.average_last", s.average_last.is_some()),
+            ]
         {
             if set && !s.keep_best {
                 bail!("{name} serves stop.keep_best, which is false: set keep_best or drop {name}");
@@ -899,12 +918,13 @@ mod tests {
             "stop.choose_every_minutes=0",
             "stop.choose_max_steps=0",
             "stop.choose_episodes=0",
+            "stop.average_last=1",
         ] {
             let e = format!("{:#}", load_config(&train_args("env1-sac", &[bad])).unwrap_err());
             assert!(e.contains(bad.split('=').next().unwrap()), "--set {bad}: {e}");
         }
         // A knob that would do nothing is refused: candidates are scored only for keep_best.
-        for knob in ["stop.choose_every_minutes=2", "stop.choose_max_steps=3000", "stop.choose_episodes=240"] {
+        for knob in ["stop.choose_every_minutes=2", "stop.choose_max_steps=3000", "stop.choose_episodes=240", "stop.average_last=16"] {
             let e = format!("{:#}", load_config(&train_args("env1-sac", &[knob, "stop.keep_best=false"])).unwrap_err());
             assert!(e.contains(knob.split('=').next().unwrap()) && e.contains("keep_best"), "{e}");
             assert!(load_config(&train_args("env1-sac", &[knob])).is_ok());

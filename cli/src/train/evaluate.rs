@@ -154,6 +154,16 @@ pub(crate) struct Evaluations {
     /// The best score of an evaluation of the criterion so far (its policy in
     /// `policy-best.safetensors`).
     best: Option<Score>,
+    /// `stop.average_last`: the run's policy at the end stands on the mean of this many of the
+    /// newest snapshots instead of the learner's last.
+    average_last: Option<usize>,
+}
+
+/// The mean of the newest snapshots (`stop.average_last`), written as
+/// `policy-average.safetensors`: what the run keeps at the end unless the best is clearly safer.
+struct Averaged {
+    path: PathBuf,
+    name: String,
 }
 
 impl Evaluations {
@@ -180,6 +190,7 @@ impl Evaluations {
             choose_every: cfg.stop.choose_every_minutes.map(|m| Duration::from_secs_f64(m * 60.0)),
             last_candidate: Instant::now(),
             best: None,
+            average_last: cfg.stop.average_last.map(|k| k as usize),
         };
         evals.best = evals.read_best();
         evals
@@ -316,6 +327,9 @@ impl Evaluations {
         match g.handle.join() {
             Ok(Ok(s)) => {
                 append_eval(&self.run, status.wall_s(), g.kind.csv(), &s)?;
+                if let Err(e) = self.keep_snapshot(s.policy_version) {
+                    tracing::warn!(error = %format!("{e:#}"), "keeping a copy of the policy evaluated failed (the run goes on)");
+                }
                 if g.kind == GateKind::Candidate {
                     tracing::info!(policy_version = s.policy_version, "evaluation to choose from: {}", s.one_line());
                 }
@@ -336,6 +350,19 @@ impl Evaluations {
                 Ok(None)
             }
         }
+    }
+
+    /// Every policy an evaluation of the criterion judged stays in `snapshots/` as
+    /// `policy-v{version}.safetensors` (a few hundred KB each, about one every
+    /// `stop.choose_every_minutes`), so that any of them, not only the best and the last, can be
+    /// evaluated, compared or shipped after the run (its scores are the `criteria` and
+    /// `candidate` lines of `evals.csv`).
+    fn keep_snapshot(&self, version: u64) -> Result<()> {
+        let dir = self.run.join("snapshots");
+        fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let to = dir.join(format!("policy-v{version}.safetensors"));
+        let bytes = fs::read(self.gate_policy()).with_context(|| format!("reading {}", self.gate_policy().display()))?;
+        mapless_proto::atomic_file::write_file_atomically(&to, &bytes).with_context(|| format!("writing {}", to.display()))
     }
 
     /// The policy an evaluation of the criterion judged (`policy-criteria.safetensors`), scored:
@@ -361,12 +388,22 @@ impl Evaluations {
     /// while training was the best of many, and so flattered by chance; on fresh starts the two
     /// compare fairly. Says which policy the run keeps, and why.
     pub(crate) fn keep_the_best_policy(&self, status: &Status) -> Result<String> {
-        let Some(best) = &self.best else { return Ok(LAST.to_owned()) };
         if !self.policy().exists() {
             return Ok(LAST.to_owned());
         }
+        let average = self.average();
+        let Some(best) = &self.best else {
+            return match average {
+                Some(a) => self.make_the_runs_policy(&a.path).map(|()| a.name),
+                None => Ok(LAST.to_owned()),
+            };
+        };
+        let (other, other_kind, other_name) = match &average {
+            Some(a) => (a.path.clone(), "average", a.name.as_str()),
+            None => (self.policy(), "last", LAST),
+        };
         eprintln!(
-            "choosing the run's policy: the best one evaluated while training ({}, at {:.0} s) and the learner's last, {} episodes each on starts of their own ...",
+            "choosing the run's policy: the best one evaluated while training ({}, at {:.0} s) and {other_name}, {} episodes each on starts of their own ...",
             best.describe(),
             best.wall_s,
             self.choice_episodes
@@ -378,32 +415,60 @@ impl Evaluations {
                 Ok(None)
             }
         };
-        let (again, last) = (score(self.best_policy(), "best")?, score(self.policy(), "last")?);
-        let kept = self.keep_best_over(again.as_ref(), last.as_ref())?;
+        let (again, last) = (score(self.best_policy(), "best")?, score(other, other_kind)?);
+        let kept = self.keep_best_over(again.as_ref(), last.as_ref(), average.as_ref())?;
         eprintln!("  the run's policy: {kept}");
         Ok(kept)
     }
 
     /// The best policy becomes the run's when, on the same starts, it (`best`) is clearly safer
-    /// than the learner's last one (`last`), the last one beside it as `policy-last.safetensors`; none
-    /// stands for an evaluation that failed: the other policy is kept (the last when both did).
-    fn keep_best_over(&self, best: Option<&Score>, last: Option<&Score>) -> Result<String> {
+    /// than the one the run keeps otherwise (`last`): the mean of the newest snapshots when
+    /// there is one (`average`), else the learner's last; the learner's last stays beside the
+    /// run's as `policy-last.safetensors`. None stands for an evaluation that failed: the other
+    /// policy is kept (the default one when both did).
+    fn keep_best_over(&self, best: Option<&Score>, last: Option<&Score>, average: Option<&Averaged>) -> Result<String> {
+        let default = average.map_or(LAST, |a| a.name.as_str());
+        let keep_default = || match average {
+            Some(a) => self.make_the_runs_policy(&a.path),
+            None => Ok(()),
+        };
         let (Some(was), Some(b)) = (&self.best, best) else {
+            keep_default()?;
             return Ok(match self.best.is_some() {
-                true => format!("{LAST}: the best one evaluated while training could not be evaluated again"),
-                false => LAST.to_owned(),
+                true => format!("{default}: the best one evaluated while training could not be evaluated again"),
+                false => default.to_owned(),
             });
         };
         if let Some(l) = last
             && !b.clearly_safer_than(l)
         {
-            return Ok(format!("{LAST} ({}), not clearly safer than the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
+            keep_default()?;
+            return Ok(format!("{default} ({}), not clearly safer than the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
         }
         self.make_the_runs_policy(&self.best_policy())?;
         Ok(match last {
-            Some(l) => format!("the best one evaluated while training (at {:.0} s, then {}; now {}), over {LAST} ({})", was.wall_s, was.describe(), b.describe(), l.describe()),
-            None => format!("the best one evaluated while training (at {:.0} s, then {}; now {}): {LAST} could not be evaluated", was.wall_s, was.describe(), b.describe()),
+            Some(l) => format!("the best one evaluated while training (at {:.0} s, then {}; now {}), over {default} ({})", was.wall_s, was.describe(), b.describe(), l.describe()),
+            None => format!("the best one evaluated while training (at {:.0} s, then {}; now {}): {default} could not be evaluated", was.wall_s, was.describe(), b.describe()),
         })
+    }
+
+    /// With `stop.average_last` = k: the mean of the newest k snapshots, written as
+    /// `policy-average.safetensors`; none without the knob, with fewer than two snapshots, or
+    /// when averaging failed (logged: the run then keeps what it would without the knob).
+    fn average(&self) -> Option<Averaged> {
+        let k = self.average_last?;
+        let path = self.run.join("policy-average.safetensors");
+        match super::average::average_newest(&self.run.join("snapshots"), k, &path) {
+            Ok(Some(versions)) => {
+                let name = format!("the mean of the newest {} policies judged (v{}–v{})", versions.len(), versions[0], versions[versions.len() - 1]);
+                Some(Averaged { path, name })
+            }
+            Ok(None) => None,
+            Err(e) => {
+                tracing::warn!(error = %format!("{e:#}"), "averaging the newest policies failed: the run keeps what it would without stop.average_last");
+                None
+            }
+        }
     }
 
     /// A run stopped by its criteria keeps the policy that met them as its policy; the
@@ -558,6 +623,21 @@ mod tests {
         assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("met".to_owned(), "last".to_owned()));
     }
 
+    #[test]
+    fn every_policy_judged_stays_in_snapshots_under_its_version() {
+        let dir = tempfile::tempdir().unwrap();
+        let evals = Evaluations::new(&super::super::config::preset_config("explore-sac").unwrap(), dir.path());
+        for (version, bytes) in [(7, "seven"), (12, "twelve")] {
+            std::fs::write(dir.path().join("policy-criteria.safetensors"), bytes).unwrap();
+            evals.keep_snapshot(version).unwrap();
+        }
+        let read = |v: u64| std::fs::read_to_string(dir.path().join(format!("snapshots/policy-v{v}.safetensors"))).unwrap();
+        assert_eq!((read(7), read(12)), ("seven".to_owned(), "twelve".to_owned()));
+        std::fs::remove_file(dir.path().join("policy-criteria.safetensors")).unwrap();
+        assert!(evals.keep_snapshot(13).is_err(), "no policy judged: an error (logged by the caller), no empty file");
+        assert!(!dir.path().join("snapshots/policy-v13.safetensors").exists());
+    }
+
     fn score(version: u64, episodes: usize, collisions: u32, mean_eqs: f64) -> Score {
         Score { policy_version: version, wall_s: version as f64, episodes, collisions, mean_eqs }
     }
@@ -677,28 +757,55 @@ mod tests {
         assert!(!score(2, 60, 5, 0.0).clearly_safer_than(&score(9, 60, 9, 0.0)));
         assert!(score(2, 240, 20, 0.0).clearly_safer_than(&score(9, 240, 36, 0.0)));
         std::fs::write(evals.policy(), "last").unwrap();
-        let kept = evals.keep_best_over(Some(&score(2, 20, 0, 90.0)), Some(&score(9, 20, 20, 0.0))).unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 0, 90.0)), Some(&score(9, 20, 20, 0.0)), None).unwrap();
         assert_eq!(kept, LAST, "nothing evaluated while training: the last stays");
         judged(&mut evals, "best", score(2, 20, 0, 100.0));
 
         // Its score while training was the best of many; evaluated again it does worse than the
         // last on the same starts, or better by a collision or three: the last stays.
         for (best, last) in [(3, 2), (1, 4), (0, 3), (2, 6)] {
-            let kept = evals.keep_best_over(Some(&score(2, 20, best, 100.0)), Some(&score(9, 20, last, 50.0))).unwrap();
+            let kept = evals.keep_best_over(Some(&score(2, 20, best, 100.0)), Some(&score(9, 20, last, 50.0)), None).unwrap();
             assert!(kept.starts_with("the learner's last (v9"), "{best} against {last}: {kept}");
         }
         assert_eq!(read("policy.safetensors"), "last");
         assert!(!dir.path().join("policy-last.safetensors").exists());
-        let kept = evals.keep_best_over(None, Some(&score(9, 20, 20, 0.0))).unwrap();
+        let kept = evals.keep_best_over(None, Some(&score(9, 20, 20, 0.0)), None).unwrap();
         assert!(kept.contains("could not be evaluated again") && read("policy.safetensors") == "last", "{kept}");
 
-        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), Some(&score(9, 20, 9, 500.0))).unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), Some(&score(9, 20, 9, 500.0)), None).unwrap();
         assert!(kept.starts_with("the best one evaluated while training (at 2 s"), "{kept}");
         assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "last".to_owned()));
 
         std::fs::write(evals.policy(), "another last").unwrap();
-        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), None).unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), None, None).unwrap();
         assert!(kept.contains("could not be evaluated"), "{kept}");
         assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "another last".to_owned()));
+    }
+
+    #[test]
+    fn with_average_last_the_mean_stands_where_the_last_would_and_the_last_stays_beside_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = super::super::config::preset_config("explore-sac").unwrap();
+        cfg.stop.average_last = Some(2);
+        let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+        let mut evals = Evaluations::new(&cfg, dir.path());
+        assert!(evals.average().is_none(), "no snapshots: nothing to average");
+        let mean = Averaged { path: dir.path().join("policy-average.safetensors"), name: "the mean".into() };
+        std::fs::write(&mean.path, "mean").unwrap();
+        judged(&mut evals, "best", score(2, 20, 0, 100.0));
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 2, 100.0)), Some(&score(9, 20, 3, 50.0)), Some(&mean)).unwrap();
+        assert!(kept.starts_with("the mean (v9"), "{kept}");
+        assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("mean".to_owned(), "last".to_owned()));
+
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 20, 1, 100.0)), Some(&score(9, 20, 9, 500.0)), Some(&mean)).unwrap();
+        assert!(kept.starts_with("the best one evaluated while training") && kept.contains("over the mean"), "{kept}");
+        assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "last".to_owned()));
+
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(None, Some(&score(9, 20, 9, 500.0)), Some(&mean)).unwrap();
+        assert!(kept.starts_with("the mean: the best one evaluated while training could not be evaluated again"), "{kept}");
+        assert_eq!(read("policy.safetensors"), "mean");
     }
 }

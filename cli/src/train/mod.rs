@@ -27,6 +27,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Result;
 
+mod average;
 mod children;
 mod cluster;
 pub mod config;

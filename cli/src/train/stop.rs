@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::config::StopCriteria;
-use super::episodes::{EpisodeRow, averages};
+use super::episodes::EpisodeRow;
 use super::status::Milestone;
 use crate::eval::EvalSummary;
 use mapless_sim::stats::trailing_mean;
@@ -45,7 +45,7 @@ pub fn averages_met(rows: &[EpisodeRow], stop: &StopCriteria, steps_cap: u32) ->
     if rows.len() < stop.window || stop.min_episodes.is_some_and(|m| (rows.len() as u64) < m) {
         return false;
     }
-    let (r, _) = averages(rows, stop.window);
+    let r = trailing_mean(rows.iter().map(|e| e.episode_return), stop.window);
     let s = trailing_mean(rows.iter().map(|e| f64::from(e.steps.min(steps_cap))), stop.window);
     stop.average_return.is_none_or(|g| r >= g) && stop.average_steps.is_none_or(|g| s >= g)
 }
