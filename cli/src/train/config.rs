@@ -413,14 +413,12 @@ impl TrainConfig {
         if s.average_last.is_some_and(|k| k < 2) {
             bail!("stop.average_last must be >= 2 policies (or null: the learner's last)");
         }
-        for (name, set) in
-            [
-                ("stop.choose_every_minutes", s.choose_every_minutes.is_some()),
-                ("stop.choose_max_steps", s.choose_max_steps.is_some()),
-                ("stop.choose_episodes", s.choose_episodes.is_some()),
-                ("stop.average_last", s.average_last.is_some()),
-            ]
-        {
+        for (name, set) in [
+            ("stop.choose_every_minutes", s.choose_every_minutes.is_some()),
+            ("stop.choose_max_steps", s.choose_max_steps.is_some()),
+            ("stop.choose_episodes", s.choose_episodes.is_some()),
+            ("stop.average_last", s.average_last.is_some()),
+        ] {
             if set && !s.keep_best {
                 bail!("{name} serves stop.keep_best, which is false: set keep_best or drop {name}");
             }

@@ -808,4 +808,33 @@ mod tests {
         assert!(kept.starts_with("the mean: the best one evaluated while training could not be evaluated again"), "{kept}");
         assert_eq!(read("policy.safetensors"), "mean");
     }
+
+    #[test]
+    fn a_run_that_judged_nothing_better_keeps_the_mean_of_its_newest_snapshots() {
+        use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, WeightsSnapshot};
+        use mapless_proto::weights_file::{read_safetensors_file, write_safetensors_file};
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = super::super::config::preset_config("explore-sac").unwrap();
+        cfg.stop.average_last = Some(2);
+        let evals = Evaluations::new(&cfg, dir.path());
+        let policy = |version: u64, w: f32| WeightsSnapshot {
+            protocol_version: ProtocolVersion::V1 as i32,
+            version,
+            algorithm: Algorithm::Sac as i32,
+            created_unix_ms: 1,
+            obs_dim: 1,
+            act_dim: 1,
+            tensors: vec![NamedTensor::from_f32("actor.out.bias", vec![1], &[w]).unwrap()],
+            metadata: Default::default(),
+        };
+        std::fs::create_dir(dir.path().join("snapshots")).unwrap();
+        for (v, w) in [(3, 100.0), (5, 1.0), (8, 3.0)] {
+            write_safetensors_file(&dir.path().join(format!("snapshots/policy-v{v}.safetensors")), &policy(v, w)).unwrap();
+        }
+        write_safetensors_file(&evals.policy(), &policy(9, -7.0)).unwrap();
+        let kept = evals.keep_the_best_policy(&Status::new(0.0, None)).unwrap();
+        assert_eq!(kept, "the mean of the newest 2 policies judged (v5–v8)");
+        let bias = |f: &str| read_safetensors_file(&dir.path().join(f)).unwrap().tensors[0].to_f32_vec().unwrap();
+        assert_eq!((bias("policy.safetensors"), bias("policy-last.safetensors")), (vec![2.0], vec![-7.0]));
+    }
 }
