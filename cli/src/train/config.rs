@@ -106,9 +106,11 @@ pub struct StopCriteria {
     /// of the newest this many policies in `snapshots/` (those the criterion's evaluations and
     /// `choose_every_minutes`' judged), in place of the learner's last; the mean stands in the
     /// end's evaluations where the last would (an `average` line of `evals.csv`); null: the
-    /// learner's last [ours, as stochastic weight averaging (Izmailov et al. 2018; in deep RL,
-    /// Nikishin et al. 2018): over one explore-sac run's last 16 policies the held-out families
-    /// ranged 94–132 of 150 collision-free, the mean of those 16 was at 134; docs/experiments.md,
+    /// learner's last. Unlike `learner.policy_average` (an exponential average over 1/τ̄
+    /// updates, published to the actors and judged by the gates), it changes nothing while the
+    /// run trains [ours, as stochastic weight averaging (Izmailov et al. 2018; in deep RL,
+    /// Nikishin et al. 2018): over one capped explore-sac run's newest 16 policies the held-out
+    /// families ranged 94–132 of 150 collision-free, the mean of those 16 was at 134; docs/experiments.md,
     /// "The mean of a run's last policies"].
     pub average_last: Option<u32>,
 }
