@@ -32,7 +32,9 @@ pub(crate) fn newest_snapshots(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
 }
 
 /// The element-wise mean of `snapshots`' tensors (summed in f64), with the newest one's version,
-/// algorithm, dimensions and metadata, plus [`META_AVERAGED_VERSIONS`]. Every snapshot must
+/// algorithm, dimensions and metadata, plus [`META_AVERAGED_VERSIONS`] (what tells the mean from
+/// the newest policy of that version). A learner restarted without a checkpoint starts afresh
+/// while the versions count on, so the newest snapshots of such a run may mix the two. Every snapshot must
 /// hold the same tensors, by name and shape, for the same algorithm and dimensions.
 pub(crate) fn mean_of(snapshots: &[WeightsSnapshot]) -> Result<WeightsSnapshot> {
     let Some(newest) = snapshots.iter().max_by_key(|s| s.version) else { bail!("no policy to average") };

@@ -353,14 +353,19 @@ impl Evaluations {
     }
 
     /// Every policy an evaluation of the criterion judged stays in `snapshots/` as
-    /// `policy-v{version}.safetensors` (a few hundred KB each, about one every
-    /// `stop.choose_every_minutes`), so that any of them, not only the best and the last, can be
-    /// evaluated, compared or shipped after the run (its scores are the `criteria` and
-    /// `candidate` lines of `evals.csv`).
+    /// `policy-v{version}.safetensors` (about 280 KB each for explore-sac; one every
+    /// `stop.choose_every_minutes`, and one every 20 s or so while the moving averages hold and
+    /// the criterion's evaluations run), so that any of them, not only the best and the last,
+    /// can be evaluated, compared or shipped after the run (its scores are the `criteria` and
+    /// `candidate` lines of `evals.csv`). A version already kept is never replaced: the first
+    /// copy of a version is the learner's.
     fn keep_snapshot(&self, version: u64) -> Result<()> {
         let dir = self.run.join("snapshots");
         fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         let to = dir.join(format!("policy-v{version}.safetensors"));
+        if to.exists() {
+            return Ok(());
+        }
         let bytes = fs::read(self.gate_policy()).with_context(|| format!("reading {}", self.gate_policy().display()))?;
         mapless_proto::atomic_file::write_file_atomically(&to, &bytes).with_context(|| format!("writing {}", to.display()))
     }
@@ -633,6 +638,9 @@ mod tests {
         }
         let read = |v: u64| std::fs::read_to_string(dir.path().join(format!("snapshots/policy-v{v}.safetensors"))).unwrap();
         assert_eq!((read(7), read(12)), ("seven".to_owned(), "twelve".to_owned()));
+        std::fs::write(dir.path().join("policy-criteria.safetensors"), "not seven").unwrap();
+        evals.keep_snapshot(7).unwrap();
+        assert_eq!(read(7), "seven", "a version kept is not replaced");
         std::fs::remove_file(dir.path().join("policy-criteria.safetensors")).unwrap();
         assert!(evals.keep_snapshot(13).is_err(), "no policy judged: an error (logged by the caller), no empty file");
         assert!(!dir.path().join("snapshots/policy-v13.safetensors").exists());
@@ -810,7 +818,7 @@ mod tests {
     }
 
     #[test]
-    fn a_run_that_judged_nothing_better_keeps_the_mean_of_its_newest_snapshots() {
+    fn a_run_that_judged_no_policy_keeps_the_mean_of_its_newest_snapshots_unevaluated() {
         use mapless_proto::v1::{Algorithm, NamedTensor, ProtocolVersion, WeightsSnapshot};
         use mapless_proto::weights_file::{read_safetensors_file, write_safetensors_file};
         let dir = tempfile::tempdir().unwrap();
