@@ -357,8 +357,9 @@ impl Evaluations {
     /// `stop.choose_every_minutes`, and one every 20 s or so while the moving averages hold and
     /// the criterion's evaluations run), so that any of them, not only the best and the last,
     /// can be evaluated, compared or shipped after the run (its scores are the `criteria` and
-    /// `candidate` lines of `evals.csv`). A version already kept is never replaced: the first
-    /// copy of a version is the learner's.
+    /// `candidate` lines of `evals.csv`). A version already kept is never replaced: a run's
+    /// final `policy.safetensors` may be the mean of several, carrying its newest one's
+    /// version, and a resumed run could judge it before the learner publishes again.
     fn keep_snapshot(&self, version: u64) -> Result<()> {
         let dir = self.run.join("snapshots");
         fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -386,9 +387,10 @@ impl Evaluations {
     }
 
     /// A run that stopped without meeting its criteria (with `stop.keep_best`): the best policy
-    /// evaluated while training and the learner's last one are evaluated again, on starts of
-    /// their own (`best` and `last` lines of `evals.csv`), and the best one becomes the run's
-    /// policy when it is clearly safer there ([`Score::clearly_safer_than`]): a guard against
+    /// evaluated while training and the learner's last one (with `stop.average_last`, the mean
+    /// of the newest snapshots in its place) are evaluated again, on starts of their own (`best`
+    /// and `last` or `average` lines of `evals.csv`), and the best one becomes the run's policy
+    /// when it is clearly safer there ([`Score::clearly_safer_than`]): a guard against
     /// a run that collapsed, not a choice between two policies a collision apart. Its score
     /// while training was the best of many, and so flattered by chance; on fresh starts the two
     /// compare fairly. Says which policy the run keeps, and why.
