@@ -450,7 +450,7 @@ impl Evaluations {
             && !b.clearly_safer_than(l)
         {
             keep_default()?;
-            return Ok(format!("{default} ({}), not clearly safer than the best one evaluated while training (at {:.0} s, then {}; now {})", l.describe(), was.wall_s, was.describe(), b.describe()));
+            return Ok(format!("{default} ({}); the best one evaluated while training (at {:.0} s, then {}; now {}) is not clearly safer", l.describe(), was.wall_s, was.describe(), b.describe()));
         }
         self.make_the_runs_policy(&self.best_policy())?;
         Ok(match last {
@@ -775,7 +775,7 @@ mod tests {
         // last on the same starts, or better by a collision or three: the last stays.
         for (best, last) in [(3, 2), (1, 4), (0, 3), (2, 6)] {
             let kept = evals.keep_best_over(Some(&score(2, 20, best, 100.0)), Some(&score(9, 20, last, 50.0)), None).unwrap();
-            assert!(kept.starts_with("the learner's last (v9"), "{best} against {last}: {kept}");
+            assert!(kept.starts_with("the learner's last (v9") && kept.ends_with(") is not clearly safer"), "{best} against {last}: {kept}");
         }
         assert_eq!(read("policy.safetensors"), "last");
         assert!(!dir.path().join("policy-last.safetensors").exists());
