@@ -56,12 +56,13 @@ replay_metrics_status() {
 }
 # "ID ROWS" per actor id, from /metrics text on stdin (replay_actor_rows_total).
 actor_rows_in() { sed -n 's/^replay_actor_rows_total{.*actor="\(actor-[^"]*\)"} \([0-9.e+]*\)$/\1 \2/p'; }
-# growing_ids CMD...: the actor ids whose row counts grow over 3 s, sorted, one per line; CMD
+# growing_ids CMD...: the actor ids whose row counts grow over 8 s (a rate-limited actor lands a
+# batch every few seconds on a loaded machine), sorted, one per line; CMD
 # prints the replay's /metrics (replay_metrics here, a Swarm task's in deploy/swarm.sh).
 growing_ids() {
     local a b
     a=$("$@" | actor_rows_in)
-    sleep 3
+    sleep 8
     b=$("$@" | actor_rows_in)
     join <(sort -k1,1 <<<"$a") <(sort -k1,1 <<<"$b") | awk '$3 > $2 { print $1 }' | sort
 }

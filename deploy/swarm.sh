@@ -69,7 +69,7 @@ healthy() {
 }
 in_netns() { local c=$1; shift; nsenter -t "$(docker inspect -f '{{.State.Pid}}' "$c")" -n "$@"; }
 replay_metrics() { in_netns "$(tasks replay | head -1)" curl -sf --max-time 5 -H "Authorization: Bearer $(cat secrets/metrics-token)" http://127.0.0.1:9464/metrics; }
-# Actor ids whose row counts grow over 3 s: "actor-<slot>-…".
+# Actor ids whose row counts grow over 8 s: "actor-<slot>-…".
 writing() { growing_ids replay_metrics; }
 writers() { [ "$(writing | wc -l)" -ge "$1" ]; }
 learner_updates() { docker service logs "${stack}_learner" 2>/dev/null | grep -o '"updates":[0-9]*' | tail -1 | cut -d: -f2; }

@@ -427,7 +427,10 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         // `stop` is set: one attempt, then `flush` below keeps trying until its deadline.
         let _ = sink.send(builder.finish(actor_id, sequence), &stop);
     }
-    report.unacked_at_exit = !sink.flush(Instant::now() + Duration::from_secs(10));
+    // 25 s: a rate-limited replay acknowledges a held batch only as the learner samples, which
+    // a loaded machine can take over 10 s to do for a few batches; within the 30 s the local
+    // supervisor and the 60 s compose give a stopping actor.
+    report.unacked_at_exit = !sink.flush(Instant::now() + Duration::from_secs(25));
     report.sink = sink.stats().clone();
     report.n_step_dropped = adder.dropped();
     drop(stats_tx);

@@ -161,13 +161,13 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     let args = [&["--preset", "env1-sac", "--actors", "2", "--vehicles", "2", "--episodes", "10000000", "--run", &run_arg][..], &never_met].concat();
     let mut child = train(&run, &args);
 
-    let endpoints = wait_for("endpoints.json", Duration::from_secs(180), &mut child, &run, || json(&run.join("endpoints.json")));
+    let endpoints = wait_for("endpoints.json", Duration::from_secs(400), &mut child, &run, || json(&run.join("endpoints.json")));
     let replay_uri = endpoints["replay"].as_str().unwrap().to_owned();
 
     // Every actor's transitions reach the replay, and their rows carry advancing policy
     // versions (the learner publishes; the actors follow).
     let mut last = None;
-    let info = wait_for_or_none(Duration::from_secs(240), &mut child, || {
+    let info = wait_for_or_none(Duration::from_secs(480), &mut child, || {
         let i = server_info(&rt, &replay_uri);
         let ok = i.as_ref().is_some_and(|i| i.actors.iter().filter(|a| a.rows > 0 && a.last_policy_version >= 3).count() >= 2);
         last = Some(i.clone());
@@ -185,7 +185,7 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     let updates_before = server_info(&rt, &replay_uri).unwrap().samples_total;
     assert!(Command::new("kill").args(["-9", &victim.to_string()]).status().unwrap().success());
     let mut last = None;
-    let found = wait_for_or_none(Duration::from_secs(180), &mut child, || {
+    let found = wait_for_or_none(Duration::from_secs(400), &mut child, || {
         let i = server_info(&rt, &replay_uri)?;
         let new_writer = i.actors.iter().any(|a| !first_ids.contains(&a.actor_id) && a.rows > 0);
         let done = new_writer && i.samples_total > updates_before;
@@ -198,13 +198,13 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     assert_ne!(pids["actors"][0].as_u64().unwrap(), victim);
 
     // The newest policy is evaluated as the run goes.
-    wait_for("a progress evaluation in evals.csv", Duration::from_secs(120), &mut child, &run, || {
+    wait_for("a progress evaluation in evals.csv", Duration::from_secs(300), &mut child, &run, || {
         let text = std::fs::read_to_string(run.join("evals.csv")).ok()?;
         text.lines().any(|l| l.split(',').nth(1) == Some("progress") && l.split(',').nth(2).and_then(|v| v.parse::<u64>().ok()).is_some_and(|v| v >= 3)).then_some(())
     });
 
     // ... and the criterion's: the best policy it judged so far is kept beside the newest.
-    wait_for("a criteria evaluation in evals.csv", Duration::from_secs(120), &mut child, &run, || {
+    wait_for("a criteria evaluation in evals.csv", Duration::from_secs(300), &mut child, &run, || {
         let text = std::fs::read_to_string(run.join("evals.csv")).ok()?;
         text.lines().any(|l| l.split(',').nth(1) == Some("criteria")).then_some(())
     });
@@ -215,7 +215,7 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     // Stop (as Ctrl-C would): a final checkpoint, the curve, a summary.
     std::thread::sleep(Duration::from_secs(3));
     sigterm(child.id());
-    let st = wait_exit(&mut child, Duration::from_secs(180));
+    let st = wait_exit(&mut child, Duration::from_secs(400));
     assert!(st.success(), "train exited with {st}: {}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default());
     let first = json(&run.join("summary.json")).expect("summary.json");
     let first_updates = first["updates"].as_u64().unwrap();
@@ -252,7 +252,7 @@ fn local_cluster_trains_survives_an_actor_kill_and_resumes() {
     // Resume: the learner continues from its checkpoint (updates keep counting up), episodes
     // continue the same curve.
     let mut child = train(&run, &["--resume", &run_arg, "--episodes", &(first_episodes + 20).to_string()]);
-    let st = wait_exit(&mut child, Duration::from_secs(400));
+    let st = wait_exit(&mut child, Duration::from_secs(900));
     assert!(st.success(), "resumed train exited with {st}: {}", std::fs::read_to_string(run.with_extension("stderr")).unwrap_or_default());
     let second = json(&run.join("summary.json")).unwrap();
     assert!(second["updates"].as_u64().unwrap() > first_updates, "updates continue from the checkpoint: {first} then {second}");

@@ -109,7 +109,7 @@ fn the_monitor_writes_the_run_folder_of_a_cluster_it_did_not_start() {
     let exe = env!("CARGO_BIN_EXE_mapless");
     let mut monitor = Killed(Command::new(exe).args(["monitor", "--config"]).arg(&config).env("RUST_LOG", "info").stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap());
     let addr = format!("127.0.0.1:{port}");
-    wait_until("the monitor's health probe says SERVING", Duration::from_secs(30), || {
+    wait_until("the monitor's health probe says SERVING", Duration::from_secs(90), || {
         Command::new(exe).args(["monitor", "health", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success())
     });
 
@@ -131,12 +131,12 @@ fn the_monitor_writes_the_run_folder_of_a_cluster_it_did_not_start() {
         let status = client.report(tokio_stream::iter(vec![bad])).await.expect_err("a NaN return is refused");
         assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
     });
-    wait_until("60 episodes in episodes.csv", Duration::from_secs(20), || rows(&run).len() >= 60);
+    wait_until("60 episodes in episodes.csv", Duration::from_secs(120), || rows(&run).len() >= 60);
     let stored = rows(&run);
     assert_eq!(stored.len(), 60, "exactly the valid episodes");
     assert!(stored.iter().all(|r| &r[2] != "actor-9-1-1"), "nothing of the refused record");
     assert!(run.join("policy.safetensors").exists(), "the learner's policy copied into the run folder");
-    wait_until("an evaluation while it runs (evals.csv)", Duration::from_secs(60), || std::fs::read_to_string(run.join("evals.csv")).is_ok_and(|t| t.contains("progress")));
+    wait_until("an evaluation while it runs (evals.csv)", Duration::from_secs(180), || std::fs::read_to_string(run.join("evals.csv")).is_ok_and(|t| t.contains("progress")));
 
     nix::sys::signal::kill(nix::unistd::Pid::from_raw(monitor.0.id() as i32), nix::sys::signal::Signal::SIGTERM).unwrap();
     let t = Instant::now();

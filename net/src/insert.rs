@@ -533,7 +533,8 @@ mod tests {
         let stop = AtomicBool::new(false);
         let err = std::thread::scope(|s| {
             s.spawn(|| {
-                std::thread::sleep(Duration::from_millis(300));
+                // Long enough for a first connection attempt to fail on a loaded machine.
+                std::thread::sleep(Duration::from_secs(2));
                 stop.store(true, Ordering::Relaxed);
             });
             client.send(batch(1), &stop).expect_err("stopped")

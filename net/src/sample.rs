@@ -643,7 +643,14 @@ mod tests {
         let mut client = SampleClient::start(unreachable()).expect("starts without a server");
         assert!(client.next_batch_timeout(Duration::from_millis(200)).expect("no error, only waiting").is_none());
         client.update_priorities(&[1, 2], vec![0.5, 1.0]).expect("queued");
-        let stats = client.stats();
+        // The background thread's first failed attempt may come after those 200 ms on a loaded
+        // machine: look for up to 10 s.
+        let until = std::time::Instant::now() + Duration::from_secs(10);
+        let mut stats = client.stats();
+        while stats.stream_errors == 0 && std::time::Instant::now() < until {
+            std::thread::sleep(Duration::from_millis(20));
+            stats = client.stats();
+        }
         assert!(stats.stream_errors >= 1 && stats.last_error.is_some(), "{stats:?}");
         assert_eq!(stats.batches, 0);
         // Dropping stops the background thread promptly.

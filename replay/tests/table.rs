@@ -57,7 +57,8 @@ fn blocked_sampler_wakes_when_an_insert_arrives() {
     let t = Arc::new(Table::new(c, 1).unwrap());
     let t2 = Arc::clone(&t);
     let waiter = std::thread::spawn(move || t2.sample(2, None, Some(Instant::now() + Duration::from_secs(10))));
-    std::thread::sleep(Duration::from_millis(50));
+    // Time for the waiter to start and block, even on a loaded machine.
+    std::thread::sleep(Duration::from_millis(300));
     t.insert(&batch("a", 1, 0.0, 5), None).unwrap();
     assert_eq!(waiter.join().unwrap().unwrap().num_rows, 2);
     assert!(t.info().rate_limiter.unwrap().samples_blocked_ms > 0, "the wait is accounted as blocked time");
