@@ -212,7 +212,7 @@ fn unix_ms() -> u64 {
 }
 
 /// Runs actor process `index` until `stop` turns true or `max_vehicle_steps` (if any) have been
-/// taken; then sends what is left and waits (up to 10 s) for the acknowledgements.
+/// taken; then sends what is left and waits (up to 20 s) for the acknowledgements.
 pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool>, max_vehicle_steps: Option<u64>) -> anyhow::Result<ActorReport> {
     cfg.validate().map_err(|e| anyhow::anyhow!("actor config: {e}"))?;
     // One map, or a list of maps and families: every episode draws its world from the pool
@@ -427,10 +427,10 @@ pub fn run(cfg: &ActorConfig, index: usize, actor_id: &str, stop: Arc<AtomicBool
         // `stop` is set: one attempt, then `flush` below keeps trying until its deadline.
         let _ = sink.send(builder.finish(actor_id, sequence), &stop);
     }
-    // 25 s: a rate-limited replay acknowledges a held batch only as the learner samples, which
-    // a loaded machine can take over 10 s to do for a few batches; within the 30 s the local
-    // supervisor and the 60 s compose give a stopping actor.
-    report.unacked_at_exit = !sink.flush(Instant::now() + Duration::from_secs(25));
+    // 20 s: a rate-limited replay acknowledges a held batch only as the learner samples, which
+    // a loaded machine can take over 10 s to do for a few batches; inside the 30 s that the
+    // local supervisor, compose and the stack give a stopping actor.
+    report.unacked_at_exit = !sink.flush(Instant::now() + Duration::from_secs(20));
     report.sink = sink.stats().clone();
     report.n_step_dropped = adder.dropped();
     drop(stats_tx);

@@ -781,10 +781,10 @@ mod tests {
             t
         };
         // Two file workers started late in the run and not yet retired (tokio keeps them 10 s):
-        // the trend reads 2.4 threads over 24 s (more than the 2 once allowed), inside a tenth of the mean plus 2.
+        // the trend reads 2.4 threads over 22 s (more than the 2 once allowed), inside a tenth of the mean plus 2.
         let churn = with_threads(&|i| 20 + u64::from(i >= 9) + u64::from(i >= 12));
         assert_eq!(verdict(&churn, &a), Vec::<String>::new());
-        // One thread kept per snapshot (one every 4 s) is a leak.
+        // One thread kept every 4 s (fewer than one per snapshot, every 3 s here) is a leak.
         let leak = with_threads(&|i| 20 + i as u64 / 2);
         let problems = verdict(&leak, &a);
         assert!(problems.len() == 1 && problems[0].starts_with("replay threads kept growing"), "{problems:?}");

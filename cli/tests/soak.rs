@@ -21,10 +21,9 @@ fn a_thirty_second_soak_of_64_streams_passes_and_every_part_works() {
     let dir = tempfile::tempdir().unwrap();
     let out_dir = dir.path().join("out");
     // A lower offered rate and a small table than the 10-minute figures: a debug build on a
-    // shared 2-core machine, and the table must fill well inside the 30 s. A stall is judged
-    // over 25 s: a debug learner on a loaded machine can take 20 s to make its first update.
+    // shared 2-core machine, and the table must fill well inside the 30 s.
     let out = Command::new(mapless())
-        .args(["bench", "soak", "--streams", "64", "--minutes", "0.5", "--rows-per-s", "6400", "--capacity", "20000", "--interval-s", "2", "--stall-s", "25", "--json"])
+        .args(["bench", "soak", "--streams", "64", "--minutes", "0.5", "--rows-per-s", "6400", "--capacity", "20000", "--interval-s", "2", "--json"])
         .arg("--dir")
         .arg(dir.path().join("soak"))
         .arg("--out")
@@ -44,8 +43,9 @@ fn a_thirty_second_soak_of_64_streams_passes_and_every_part_works() {
     assert_eq!(f("soak.failures"), 0.0);
     assert!(f("soak.priority_updates") > 100.0, "{stdout}");
     assert!(f("soak.learner_updates_per_s") > 0.0, "{stdout}");
-    // Every subscriber received the initial policy at least, and the learner published more.
-    assert!(f("soak.weights_snapshots_received") > 64.0, "{stdout}");
+    // Every subscriber received the initial policy at least, and the learner published more:
+    // at least half of them received a newer one too (all of them, on an unloaded machine).
+    assert!(f("soak.weights_snapshots_received") >= 96.0, "{stdout}");
     assert!(f("soak.insert_latency_p99_ms").is_finite() && f("soak.sample_latency_p99_ms").is_finite(), "{stdout}");
     assert!(f("soak.replay_rss_max_mib") > 0.0 && f("soak.replay_threads_max") > 1.0 && f("soak.replay_open_files_max") > 64.0, "64 connections are open files: {stdout}");
     assert!(f("soak.replay_dir_max_mib") > 0.0, "persistence was on: {stdout}");

@@ -647,7 +647,7 @@ mod tests {
         // machine: look for up to 10 s.
         let until = std::time::Instant::now() + Duration::from_secs(10);
         let mut stats = client.stats();
-        while stats.stream_errors == 0 && std::time::Instant::now() < until {
+        while (stats.stream_errors == 0 || stats.last_error.is_none()) && std::time::Instant::now() < until {
             std::thread::sleep(Duration::from_millis(20));
             stats = client.stats();
         }

@@ -251,7 +251,7 @@ impl Cluster {
             }
         }
         for a in &mut self.actors {
-            // An actor sends its last batch and waits up to 10 s for the acknowledgements.
+            // An actor sends its last batch and waits up to 20 s for the acknowledgements.
             a.stop(Duration::from_secs(30));
         }
         self.learner.stop(Duration::from_secs(60));
