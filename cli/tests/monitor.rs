@@ -90,28 +90,42 @@ fn the_monitor_writes_the_run_folder_of_a_cluster_it_did_not_start() {
     std::fs::create_dir_all(dir.join("train")).unwrap();
     std::fs::copy(&policy, dir.join("train/policy.safetensors")).unwrap();
     std::fs::write(dir.join("metrics-token"), "m3trics\n").unwrap();
-    let port = free_port();
     let config = dir.join("monitor.yaml");
-    std::fs::write(
-        &config,
-        format!(
-            "preset: env1-sac\nset: [eval.episodes=3, eval.every_minutes=0.005, eval.progress_episodes=1]\nrun: {}\nstats_listen: 127.0.0.1:{port}\n\
-             policy_file: {}\nreplay_metrics: {}\nlearner_metrics: {}\nmetrics_token_file: {}\n",
-            run.display(),
-            dir.join("train/policy.safetensors").display(),
-            fake_metrics("m3trics"),
-            // A /metrics that wants another token: refused on every scrape, told once.
-            fake_metrics("another"),
-            dir.join("metrics-token").display()
-        ),
-    )
-    .unwrap();
+    // The learner's: a /metrics that wants another token, refused on every scrape, told once.
+    let (replay_metrics, learner_metrics) = (fake_metrics("m3trics"), fake_metrics("another"));
     let exe = env!("CARGO_BIN_EXE_mapless");
-    let mut monitor = Killed(Command::new(exe).args(["monitor", "--config"]).arg(&config).env("RUST_LOG", "info").stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap());
-    let addr = format!("127.0.0.1:{port}");
-    wait_until("the monitor's health probe says SERVING", Duration::from_secs(90), || {
-        Command::new(exe).args(["monitor", "health", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success())
-    });
+    // A port free a moment ago may be taken before the monitor binds it (by another test's
+    // listener): the monitor then exits, saying so, and the test tries another port.
+    let (mut monitor, addr) = 'started: {
+        for _ in 0..5 {
+            let port = free_port();
+            std::fs::write(
+                &config,
+                format!(
+                    "preset: env1-sac\nset: [eval.episodes=3, eval.every_minutes=0.005, eval.progress_episodes=1]\nrun: {}\nstats_listen: 127.0.0.1:{port}\n\
+                     policy_file: {}\nreplay_metrics: {replay_metrics}\nlearner_metrics: {learner_metrics}\nmetrics_token_file: {}\n",
+                    run.display(),
+                    dir.join("train/policy.safetensors").display(),
+                    dir.join("metrics-token").display()
+                ),
+            )
+            .unwrap();
+            let mut monitor = Killed(Command::new(exe).args(["monitor", "--config"]).arg(&config).env("RUST_LOG", "info").stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap());
+            let addr = format!("127.0.0.1:{port}");
+            let t = Instant::now();
+            while monitor.0.try_wait().unwrap().is_none() {
+                if Command::new(exe).args(["monitor", "health", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success()) {
+                    break 'started (monitor, addr);
+                }
+                assert!(t.elapsed() < Duration::from_secs(90), "timed out after 90 s waiting for the monitor's health probe to say SERVING");
+                std::thread::sleep(Duration::from_millis(100));
+            }
+            let mut log = String::new();
+            monitor.0.stderr.take().unwrap().read_to_string(&mut log).unwrap();
+            assert!(log.to_lowercase().contains("address already in use"), "the monitor exited on start:\n{log}");
+        }
+        panic!("five ports in a row were taken before the monitor bound them");
+    };
 
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     rt.block_on(async {

@@ -17,7 +17,7 @@ use mapless_sim::EnvConfig;
 use mapless_sim::worlds::Split;
 use serde::{Deserialize, Serialize};
 
-use super::config::{EvalSettings, TrainConfig};
+use super::config::{EvalSettings, KeepBestWhen, TrainConfig};
 use super::episodes::truncate_torn_line;
 use super::folder::write_atomic;
 use super::status::{Milestone, Status};
@@ -157,6 +157,8 @@ pub(crate) struct Evaluations {
     /// `stop.average_last`: the run's policy at the end stands on the mean of this many of the
     /// newest snapshots instead of the learner's last.
     average_last: Option<usize>,
+    /// `stop.keep_best_when`.
+    keep_best_when: KeepBestWhen,
 }
 
 /// The mean of the newest snapshots (`stop.average_last`), written as
@@ -191,6 +193,7 @@ impl Evaluations {
             last_candidate: Instant::now(),
             best: None,
             average_last: cfg.stop.average_last.map(|k| k as usize),
+            keep_best_when: cfg.stop.keep_best_when,
         };
         evals.best = evals.read_best();
         evals
@@ -429,7 +432,8 @@ impl Evaluations {
     }
 
     /// The best policy becomes the run's when, on the same starts, it (`best`) is clearly safer
-    /// than the one the run keeps otherwise (`last`): the mean of the newest snapshots when
+    /// (with `stop.keep_best_when: safer`, safer: [`Score::beats`]) than the one the run keeps
+    /// otherwise (`last`): the mean of the newest snapshots when
     /// there is one (`average`), else the learner's last; the learner's last stays beside the
     /// run's as `policy-last.safetensors`. None stands for an evaluation that failed: the other
     /// policy is kept (the default one when both did).
@@ -446,11 +450,15 @@ impl Evaluations {
                 false => default.to_owned(),
             });
         };
+        let (better, not_better) = match self.keep_best_when {
+            KeepBestWhen::ClearlySafer => (Score::clearly_safer_than as fn(&Score, &Score) -> bool, "is not clearly safer"),
+            KeepBestWhen::Safer => (Score::beats as fn(&Score, &Score) -> bool, "is not the safer (fewer collisions, then a higher mean EQS)"),
+        };
         if let Some(l) = last
-            && !b.clearly_safer_than(l)
+            && !better(b, l)
         {
             keep_default()?;
-            return Ok(format!("{default} ({}); the best one evaluated while training (at {:.0} s, then {}; now {}) is not clearly safer", l.describe(), was.wall_s, was.describe(), b.describe()));
+            return Ok(format!("{default} ({}); the best one evaluated while training (at {:.0} s, then {}; now {}) {not_better}", l.describe(), was.wall_s, was.describe(), b.describe()));
         }
         self.make_the_runs_policy(&self.best_policy())?;
         Ok(match last {
@@ -817,6 +825,45 @@ mod tests {
         let kept = evals.keep_best_over(None, Some(&score(9, 20, 9, 500.0)), Some(&mean)).unwrap();
         assert!(kept.starts_with("the mean: the best one evaluated while training could not be evaluated again"), "{kept}");
         assert_eq!(read("policy.safetensors"), "mean");
+    }
+
+    #[test]
+    fn with_keep_best_when_safer_the_one_that_collided_less_on_the_same_starts_is_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = super::super::config::preset_config("explore-sac").unwrap();
+        cfg.stop.average_last = Some(16);
+        cfg.stop.keep_best_when = KeepBestWhen::Safer;
+        let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+        let mut evals = Evaluations::new(&cfg, dir.path());
+        let mean = Averaged { path: dir.path().join("policy-average.safetensors"), name: "the mean".into() };
+        std::fs::write(&mean.path, "mean").unwrap();
+        judged(&mut evals, "best", score(2, 60, 4, 100.0));
+        // The run of 2026-12-07 (seed 0, hard starts within 3 m): 19 against 30 of 240 is not
+        // clearly fewer (p ≈ 0.07), but fewer.
+        assert!(!score(2, 240, 19, 0.0).clearly_safer_than(&score(9, 240, 30, 0.0)));
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 240, 19, 384.0)), Some(&score(9, 240, 30, 371.0)), Some(&mean)).unwrap();
+        assert!(kept.starts_with("the best one evaluated while training") && kept.contains("over the mean"), "{kept}");
+        assert_eq!((read("policy.safetensors"), read("policy-last.safetensors")), ("best".to_owned(), "last".to_owned()));
+        // More collisions, or as many at a lower or the same mean EQS: the mean stays.
+        for (best, best_eqs) in [(33, 500.0), (32, 400.0), (32, 450.0)] {
+            std::fs::write(evals.policy(), "last").unwrap();
+            let kept = evals.keep_best_over(Some(&score(2, 240, best, best_eqs)), Some(&score(9, 240, 32, 450.0)), Some(&mean)).unwrap();
+            assert!(kept.starts_with("the mean (v9") && kept.ends_with("is not the safer (fewer collisions, then a higher mean EQS)"), "{best} at {best_eqs}: {kept}");
+            assert_eq!(read("policy.safetensors"), "mean");
+        }
+        // As many collisions at a higher mean EQS: the best.
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 240, 32, 451.0)), Some(&score(9, 240, 32, 450.0)), Some(&mean)).unwrap();
+        assert!(kept.starts_with("the best one evaluated while training"), "{kept}");
+        assert_eq!(read("policy.safetensors"), "best");
+        // Without the knob the same counts keep the mean.
+        cfg.stop.keep_best_when = KeepBestWhen::ClearlySafer;
+        let mut evals = Evaluations::new(&cfg, dir.path());
+        judged(&mut evals, "best", score(2, 60, 4, 100.0));
+        std::fs::write(evals.policy(), "last").unwrap();
+        let kept = evals.keep_best_over(Some(&score(2, 240, 19, 384.0)), Some(&score(9, 240, 30, 371.0)), Some(&mean)).unwrap();
+        assert!(kept.starts_with("the mean (v9") && kept.ends_with("is not clearly safer"), "{kept}");
     }
 
     #[test]
