@@ -26,8 +26,8 @@ use tokio::task::JoinHandle;
 use tonic::Code;
 
 /// Upper bound on anything a test waits for, so a bug fails instead of hanging; generous, as
-/// a test waits this long only when it fails (1,000 subscribers on a loaded 2-core machine
-/// take seconds).
+/// a test waits this long only when it fails (a slow subscriber's 40 snapshots of 1 MiB on a
+/// loaded 2-core machine take seconds).
 const PATIENCE: Duration = Duration::from_secs(60);
 
 async fn within<T>(what: &str, f: impl Future<Output = T>) -> T {

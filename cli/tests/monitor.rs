@@ -115,7 +115,12 @@ fn the_monitor_writes_the_run_folder_of_a_cluster_it_did_not_start() {
             let t = Instant::now();
             while monitor.0.try_wait().unwrap().is_none() {
                 if Command::new(exe).args(["monitor", "health", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success()) {
-                    break 'started (monitor, addr);
+                    // The one that answered may be whoever took the port: the monitor must still run.
+                    std::thread::sleep(Duration::from_millis(500));
+                    if monitor.0.try_wait().unwrap().is_none() {
+                        break 'started (monitor, addr);
+                    }
+                    break;
                 }
                 assert!(t.elapsed() < Duration::from_secs(90), "timed out after 90 s waiting for the monitor's health probe to say SERVING");
                 std::thread::sleep(Duration::from_millis(100));

@@ -72,7 +72,7 @@ pub struct StopCriteria {
     /// evaluations of the criterion judged (the lowest share of collisions, then the highest
     /// mean EQS; kept as `policy-best.safetensors` as the run goes) when, evaluated again, it
     /// is clearly safer than the learner's last one (or `average_last`'s mean) on the same fresh starts (a one-sided Fisher
-    /// exact test on their collision counts at 5 %), the last one beside it as `policy-last.safetensors`;
+    /// exact test on their collision counts at 5 %; `keep_best_when` may ask only that it be the safer), the last one beside it as `policy-last.safetensors`;
     /// false: the learner's last one [ours, as Stable-Baselines3's `EvalCallback` keeps its
     /// `best_model`: an off-policy critic can diverge late in a run, and a time limit then
     /// stops on a policy worse than one it had (docs/cluster.md, "A run")].
@@ -102,7 +102,7 @@ pub struct StopCriteria {
     /// one in 258 (docs/experiments.md, "Choosing on more episodes")].
     pub choose_episodes: Option<u32>,
     /// With `keep_best`: the run's policy at the end, unless its criteria were met or the best
-    /// policy evaluated while training is clearly safer, is the element-wise mean of the weights
+    /// policy evaluated while training is clearly safer (`keep_best_when`), is the element-wise mean of the weights
     /// of the newest this many policies in `snapshots/` (those the criterion's evaluations and
     /// `choose_every_minutes`' judged; all of them when fewer, and none with fewer than 2), in
     /// place of the learner's last; the mean stands in the end's evaluations where the last
@@ -124,7 +124,7 @@ pub struct StopCriteria {
     /// in fewer episodes (at the same count the higher mean EQS; at that too, the last or the
     /// mean) [ours: both are evaluated again on starts of their own, so the best's selection on
     /// the gates' episodes does not flatter that count; where the best and the mean of 16 were
-    /// judged again on 240 starts, the one with fewer collisions was never the less safe on 150
+    /// judged again on 240 starts and both evaluated held out, the one with fewer collisions was never the less safe on 150
     /// held-out family episodes over five runs (123 against 121, 126 against 125, 136 against
     /// 122, 127 against 125, 128 against 111), and the guard kept the less safe one three times,
     /// by 2, 1 and 14 episodes (docs/experiments.md, "Caves twice as often", "The safer of two,

@@ -162,7 +162,8 @@ pub(crate) struct Evaluations {
 }
 
 /// The mean of the newest snapshots (`stop.average_last`), written as
-/// `policy-average.safetensors`: what the run keeps at the end unless the best is clearly safer.
+/// `policy-average.safetensors`: what the run keeps at the end unless the best is clearly safer
+/// (with `stop.keep_best_when: safer`, safer).
 struct Averaged {
     path: PathBuf,
     name: String,
@@ -394,7 +395,8 @@ impl Evaluations {
     /// of the newest snapshots in its place) are evaluated again, on starts of their own (`best`
     /// and `last` or `average` lines of `evals.csv`), and the best one becomes the run's policy
     /// when it is clearly safer there ([`Score::clearly_safer_than`]): a guard against
-    /// a run that collapsed, not a choice between two policies a collision apart. Its score
+    /// a run that collapsed, not a choice between two policies a collision apart; with
+    /// `stop.keep_best_when: safer`, whenever it is the safer there ([`Score::beats`]). Its score
     /// while training was the best of many, and so flattered by chance; on fresh starts the two
     /// compare fairly. Says which policy the run keeps, and why.
     pub(crate) fn keep_the_best_policy(&self, status: &Status) -> Result<String> {
@@ -838,8 +840,8 @@ mod tests {
         let mean = Averaged { path: dir.path().join("policy-average.safetensors"), name: "the mean".into() };
         std::fs::write(&mean.path, "mean").unwrap();
         judged(&mut evals, "best", score(2, 60, 4, 100.0));
-        // The run of 2026-12-07 (seed 0, hard starts within 3 m): 19 against 30 of 240 is not
-        // clearly fewer (p ≈ 0.07), but fewer.
+        // The counts of the run of 2026-12-07 (seed 0, hard starts within 3 m): 19 against 30
+        // of 240 is not clearly fewer (p ≈ 0.07), but fewer.
         assert!(!score(2, 240, 19, 0.0).clearly_safer_than(&score(9, 240, 30, 0.0)));
         std::fs::write(evals.policy(), "last").unwrap();
         let kept = evals.keep_best_over(Some(&score(2, 240, 19, 384.0)), Some(&score(9, 240, 30, 371.0)), Some(&mean)).unwrap();

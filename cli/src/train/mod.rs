@@ -12,8 +12,8 @@
 //! `curves.png` as the run goes, stops on the preset's criteria (order-W moving averages of
 //! return and steps, or K episodes, or a time limit) or Ctrl-C, then stops the children in
 //! order (actors, learner with a final checkpoint, replay), keeps the policy that met the
-//! criteria or, clearly safer than the last, the best one their evaluations judged
-//! (`stop.keep_best`), evaluates it and writes `summary.json`.
+//! criteria or, clearly safer than the last (or with `stop.keep_best_when: safer`, safer),
+//! the best one their evaluations judged (`stop.keep_best`), evaluates it and writes `summary.json`.
 //!
 //! One file a concept: `config.rs` (presets, `--set`, resolution), `folder.rs` (the run
 //! folder), `children.rs` (one child process), `restart.rs` (the restart policies),
