@@ -112,18 +112,16 @@ fn the_monitor_writes_the_run_folder_of_a_cluster_it_did_not_start() {
             .unwrap();
             let mut monitor = Killed(Command::new(exe).args(["monitor", "--config"]).arg(&config).env("RUST_LOG", "info").stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap());
             let addr = format!("127.0.0.1:{port}");
-            let t = Instant::now();
-            while monitor.0.try_wait().unwrap().is_none() {
-                if Command::new(exe).args(["monitor", "health", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success()) {
-                    // The one that answered may be whoever took the port: the monitor must still run.
-                    std::thread::sleep(Duration::from_millis(500));
-                    if monitor.0.try_wait().unwrap().is_none() {
-                        break 'started (monitor, addr);
-                    }
-                    break;
-                }
-                assert!(t.elapsed() < Duration::from_secs(90), "timed out after 90 s waiting for the monitor's health probe to say SERVING");
-                std::thread::sleep(Duration::from_millis(100));
+            let exited = |m: &mut Killed| m.0.try_wait().unwrap().is_some();
+            let mut serving = false;
+            wait_until("the monitor's health probe says SERVING (or the monitor exits)", Duration::from_secs(90), || {
+                serving = Command::new(exe).args(["monitor", "health", &addr]).stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success());
+                serving || exited(&mut monitor)
+            });
+            // The one that answered may be whoever took the port: the monitor must still run.
+            std::thread::sleep(Duration::from_millis(500));
+            if serving && !exited(&mut monitor) {
+                break 'started (monitor, addr);
             }
             let mut log = String::new();
             monitor.0.stderr.take().unwrap().read_to_string(&mut log).unwrap();
