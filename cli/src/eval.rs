@@ -33,6 +33,10 @@ pub struct EvalEpisode {
     /// its steps cover at full speed: safe because it stopped, not because it explored.
     #[serde(default)]
     pub parked: bool,
+    /// The pose it ended in, x and y in the map's frame (m) and the heading (rad): after a
+    /// collision, where the car hit something. Older eval.json files have none.
+    #[serde(default)]
+    pub end_pose: Option<[f64; 3]>,
 }
 
 /// An episode that ends without a collision is *parked* when it drove less than this share
@@ -239,6 +243,10 @@ pub fn evaluate(policy_file: &Path, map: &str, worlds: Split, env: &EnvConfig, e
             distance_m: s.distance_m,
             shaded_time_s: s.shaded_time_s,
             parked: is_parked(s.terminal, s.steps, s.distance_m, &world.cfg),
+            end_pose: Some({
+                let p = e.pose();
+                [p.x_m, p.y_m, p.heading_rad]
+            }),
         });
     }
     let n = out.len() as f64;
@@ -306,6 +314,7 @@ mod tests {
             distance_m: 5.0,
             shaded_time_s: 0.0,
             parked: !collided && k == 3,
+            end_pose: None,
         };
         let s = EvalSummary {
             map: "a+b".into(),
@@ -335,6 +344,7 @@ mod tests {
         assert!(!is_parked(false, 300, 10.0, &env));
         // Older eval.json files (without the field) still read.
         let old = r#"{"episode":1,"map":"env3","steps":3000,"return":1.0,"collided":false,"eqs":3,"ees":0.1,"distance_m":4.0,"shaded_time_s":0.0}"#;
-        assert!(!serde_json::from_str::<EvalEpisode>(old).unwrap().parked);
+        let old = serde_json::from_str::<EvalEpisode>(old).unwrap();
+        assert!(!old.parked && old.end_pose.is_none());
     }
 }

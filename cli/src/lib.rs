@@ -476,12 +476,11 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
                 e.ees,
                 e.distance_m,
                 e.shaded_time_s,
-                if e.collided {
-                    "  collision"
-                } else if e.parked {
-                    "  parked"
-                } else {
-                    ""
+                match (e.collided, e.end_pose) {
+                    (true, Some([x, y, _])) => format!("  collision at ({x:.1}, {y:.1}) m"),
+                    (true, None) => "  collision".to_owned(),
+                    (false, _) if e.parked => "  parked".to_owned(),
+                    _ => String::new(),
                 }
             );
         }
