@@ -158,7 +158,9 @@ pub struct RewardConfig {
     pub speed_weight: f64,
     /// Penalty weight of ω² [paper eq. 1: 0.6].
     pub turn_penalty: f64,
-    /// Distance bands [paper eq. 2: +2.0 for 2.0 < r < 2.5, −50 for r < 1.0; none in eq. 1].
+    /// Distance bands [paper eq. 2: +2.0 for 2.0 < r < 2.5, −50 for r < 1.0; none in eq. 1. A
+    /// run may add one to eq. 1, beyond the paper (issue 18): a price on every step that comes
+    /// close, docs/simulator.md, "A price on coming close"].
     pub bands: Vec<RewardBand>,
     /// Added to the reward of a step that ends in a collision, ≤ 0 [ours, beyond the paper
     /// (issue 18): 0 in eq. 1 and eq. 2, where a collision costs only the value it ends].
