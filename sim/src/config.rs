@@ -160,7 +160,7 @@ pub struct RewardConfig {
     pub turn_penalty: f64,
     /// Distance bands [paper eq. 2: +2.0 for 2.0 < r < 2.5, −50 for r < 1.0; none in eq. 1. A
     /// run may add one to eq. 1, beyond the paper (issue 18): a price on every step that comes
-    /// close, docs/simulator.md, "A price on coming close"].
+    /// close; −2 under 0.6 m in `explore-sac`, docs/simulator.md, "A price on coming close"].
     pub bands: Vec<RewardBand>,
     /// Added to the reward of a step that ends in a collision, ≤ 0 [ours, beyond the paper
     /// (issue 18): 0 in eq. 1 and eq. 2, where a collision costs only the value it ends].
@@ -180,7 +180,7 @@ pub struct RewardConfig {
     /// leaves the room it started in is paid for it; `novelty` pays every cell alike].
     pub novelty_eqs: f64,
     /// The most ΔEQS one new cell is paid for by `novelty_eqs`, > 0, or 0 for no cap [ours,
-    /// beyond the paper (issue 18): 0 everywhere unless a run sets it. With the linear inner
+    /// beyond the paper (issue 18): 4 in `explore-sac`, 0 in the other presets. With the linear inner
     /// sum a cell pays its ring, so the bonus grows without end with the distance from the
     /// start and a car that knows where the start is (`observation.start_offset_m`) is paid
     /// most for the farthest place, in a cave a pocket's end; capped at c, every cell beyond
@@ -189,7 +189,7 @@ pub struct RewardConfig {
     pub novelty_eqs_cap: f64,
     /// The share s ∈ [0, 1] of what a new cell adds to the EQS past `novelty_eqs_cap` that is
     /// still paid: the cell pays min(ΔEQS, c) + s·(ΔEQS − c)⁺; 0 is the flat cap, 1 no cap; only
-    /// with a cap [ours, beyond the paper (issue 18): 0 everywhere unless a run sets it. A flat
+    /// with a cap [ours, beyond the paper (issue 18): 0.5 in `explore-sac`, 0 in the other presets. A flat
     /// cap pays every cell past ring c alike, so a memoryless car no longer gains by going on
     /// to the next room and laps the first one (env3, c = 4); s > 0 keeps a slope outward,
     /// shallower than the uncapped one that drives cars into a cave's far pockets].
@@ -345,7 +345,8 @@ pub struct ObservationConfig {
     pub staleness_steps: u32,
     /// L > 0 appends two values, tanh(d/L)·(cos β, sin β), where the episode's start lies d
     /// metres from the car at bearing β from its heading (0 ahead, positive to the left); 0
-    /// leaves them out [ours, beyond the paper (issue 18): 0 in every preset. The EQS pays a
+    /// leaves them out [ours, beyond the paper (issue 18): 10 in `explore-sac`, 0 in the other
+    /// presets. The EQS pays a
     /// cell by its ring around the start (§IV-B), and `env.reward.novelty_eqs` pays the same,
     /// but without this a memoryless policy cannot tell how far from the start it is: a lap of
     /// the room it started in and a tour of the building look alike. It is what wheel odometry

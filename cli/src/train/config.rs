@@ -115,7 +115,8 @@ pub struct StopCriteria {
     /// 2018): over three capped explore-sac runs the newest 16 policies one by one were
     /// collision-free and driving in 94–132, 115–140 and 107–130 of 150 held-out family
     /// episodes, their means in 134, 140 and 127, the runs' kept policies in 130, 140 and 126;
-    /// docs/experiments.md, "The mean of a run's last policies"].
+    /// docs/experiments.md, "The mean of a run's last policies"; 16 in `explore-sac`, null in
+    /// the other presets].
     pub average_last: Option<u32>,
     /// With `keep_best`: how the end's choice reads the two policies' collisions on the same
     /// fresh starts. `clearly_safer`: the best policy evaluated while training replaces the
@@ -195,9 +196,10 @@ pub struct ActorsSettings {
     /// Share of the training episodes that start hard — facing a wall or obstacle within
     /// `env.episode.hard_start_within_m` (1.5 m), still escapable — in place of
     /// `env.episode.hard_start_share` (0, which every evaluation keeps); none: the same as
-    /// evaluations [ours: none in every preset, the paper's uniform starts; 0.3 in env1-sac's
+    /// evaluations [ours: none in the paper's presets, their uniform starts; 0.3 in env1-sac's
     /// training did not make its policies carry better to env3 over five seeds
-    /// (docs/simulator.md, "Hard starts")].
+    /// (docs/simulator.md, "Hard starts"); 0.3 in `explore-sac`, where they lifted the caves
+    /// (docs/experiments.md, "Hard starts on many worlds")].
     pub hard_start_share: Option<f64>,
     /// Share of the training episodes that run to `env.episode.long_max_steps` (3,000) in place
     /// of `env.episode.max_steps`, in place of `env.episode.long_share` (0, which every
@@ -832,7 +834,9 @@ mod tests {
             let cfg = preset_config(name).unwrap_or_else(|e| panic!("{name}: {e}"));
             let cfg = cfg.resolve().unwrap_or_else(|e| panic!("{name}: {e:#}"));
             assert_eq!(&cfg.name, name);
-            assert_eq!(cfg.replay.obs_dim, 17, "{name}: 7 beams → 17 observation values");
+            // 7 beams: 2 × 7 ranges, then v, ω and R of the last step; explore-sac adds the start's offset.
+            let start_offset = if *name == "explore-sac" { 2 } else { 0 };
+            assert_eq!(cfg.replay.obs_dim, 17 + start_offset, "{name}: 7 beams → 17 observation values, + the start's offset");
         }
         let sar = preset_config("outdoor20-sac").unwrap();
         assert_eq!(sar.resolve().unwrap().env.reward, RewardConfig::search_and_rescue());
@@ -1025,9 +1029,10 @@ mod tests {
         let err = load_config(&train_args("env1-sac", &["driver.send_priorities=true"])).unwrap_err();
         assert!(format!("{err:#}").contains("replay.sampler.kind"), "{err:#}");
         // n-step targets: the actors sum as many rewards as the learner bootstraps over, with its γ.
-        let (cfg, _, _) = load_config(&train_args("explore-sac", &["learner.n_step=3"])).unwrap();
+        let (cfg, _, _) = load_config(&train_args("env1-sac", &["learner.n_step=3"])).unwrap();
         assert_eq!(cfg.n_step_rows(), Some(NStepReturns { n: 3, gamma: 0.995 }));
-        assert_eq!(load_config(&train_args("explore-sac", &[])).unwrap().0.n_step_rows(), None);
+        assert_eq!(load_config(&train_args("env1-sac", &[])).unwrap().0.n_step_rows(), None);
+        assert_eq!(load_config(&train_args("explore-sac", &[])).unwrap().0.n_step_rows(), Some(NStepReturns { n: 3, gamma: 0.995 }));
         let err = load_config(&train_args("env1-sac", &["learner.n_step=0"])).unwrap_err();
         assert!(format!("{err:#}").contains("n_step"), "{err:#}");
         // Many vehicles per actor: the table takes their batches (batch_rows + vehicles rows).
