@@ -80,14 +80,15 @@ pub struct LearnerConfig {
     /// n of n-step TD targets: each replayed row carries the discounted sum of n rewards and
     /// the observation n steps later (the actors build such rows, `mapless_actor::nstep`), and
     /// eqs. 2, 7 and 9 bootstrap it with γⁿ instead of γ [paper: 1, one-step targets].
-    /// Beyond the paper, 1 in every paper preset, 3 in `explore-sac`. Its reason: a collision's price reaches the
+    /// Beyond the paper, 3 in `explore-sac`, 1 in the other presets. Its reason: a collision's price reaches the
     /// states n steps before it in one update instead of n (Sutton 1988; Hessel et al. 2018,
     /// "Rainbow"; Barth-Maron et al. 2018, D4PG); `explore-sac`'s cave misses are turns begun
     /// too late (docs/experiments.md). Off-policy, the sum follows the acting policy's own rewards,
     /// uncorrected, as those agents do. Measured at 3 on `explore-sac`, two seeds: no better
     /// than one-step targets alone (docs/experiments.md, "n-step targets"); adopted there with
-    /// the start's offset, hard starts, the capped bonus and a price on coming close ("A price
-    /// on coming close"), with which the gates' averages held early.
+    /// the start's offset, hard starts, the capped bonus, a price on coming close and the mean
+    /// of a run's last 16 policies ("A price on coming close"), with which the gates' averages
+    /// held early.
     pub n_step: usize,
     /// Actor (policy) learning rate [paper Table I: 5e-5].
     pub actor_lr: f64,

@@ -196,10 +196,10 @@ pub struct ActorsSettings {
     /// Share of the training episodes that start hard — facing a wall or obstacle within
     /// `env.episode.hard_start_within_m` (1.5 m), still escapable — in place of
     /// `env.episode.hard_start_share` (0, which every evaluation keeps); none: the same as
-    /// evaluations [ours: none in the paper's presets, their uniform starts; 0.3 in env1-sac's
-    /// training did not make its policies carry better to env3 over five seeds
-    /// (docs/simulator.md, "Hard starts"); 0.3 in `explore-sac`, where they lifted the caves
-    /// (docs/experiments.md, "Hard starts on many worlds")].
+    /// evaluations [ours: 0.3 in `explore-sac`, where they lifted the caves (docs/experiments.md,
+    /// "Hard starts on many worlds"); none in the other presets, the paper's uniform starts: 0.3
+    /// in env1-sac's training did not make its policies carry better to env3 over five seeds
+    /// (docs/simulator.md, "Hard starts")].
     pub hard_start_share: Option<f64>,
     /// Share of the training episodes that run to `env.episode.long_max_steps` (3,000) in place
     /// of `env.episode.max_steps`, in place of `env.episode.long_share` (0, which every
